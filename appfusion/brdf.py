@@ -1,0 +1,85 @@
+"""The engine's reflectance model (paper §3, Eq. 1): Lambertian plus isotropic Ward.
+
+    f_r(w_i, w_o) = rho_d / pi + rho_s * f(alpha; w_i, w_o)
+
+with the original Ward (1992) isotropic lobe
+
+    f(alpha; w_i, w_o) = exp(-tan^2(theta_h) / alpha^2) / (4 pi alpha^2 sqrt(cos(theta_i) cos(theta_o)))
+
+where theta_h is the angle between the half vector and the normal. Directions are unit vectors in the
+local frame (normal = +z) unless a normal is given. This module is the engine's own implementation;
+the synthetic scanner (``replay/synth``) has an independent one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: smallest cosine treated as above the horizon
+COS_EPS = 1e-6
+
+
+def ward(alpha, wi: np.ndarray, wo: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
+    """Isotropic Ward specular lobe f(alpha; w_i, w_o) (paper Eq. 1), 1/sr.
+
+    Parameters
+    ----------
+    alpha : float or ndarray
+        Roughness (> 0), broadcast against the directions' leading shape.
+    wi, wo : (..., 3) ndarray
+        Unit lighting and view directions.
+    n : (..., 3) ndarray, optional
+        Unit normals; +z when omitted.
+
+    Returns
+    -------
+    (...) ndarray
+        Lobe value; 0 where either direction is below the horizon.
+    """
+    wi = np.asarray(wi, dtype=np.float64)
+    wo = np.asarray(wo, dtype=np.float64)
+    if n is None:
+        ci, co = wi[..., 2], wo[..., 2]
+    else:
+        ci, co = np.sum(wi * n, axis=-1), np.sum(wo * n, axis=-1)
+    h = wi + wo
+    hn = np.linalg.norm(h, axis=-1)
+    hn = np.where(hn > 0, hn, 1.0)
+    ch = (h[..., 2] if n is None else np.sum(h * n, axis=-1)) / hn
+    return ward_half(alpha, ch, ci, co)
+
+
+def ward_half(alpha, cos_h, cos_i, cos_o) -> np.ndarray:
+    """Ward lobe from cosines: half-vector, lighting and view angle to the normal."""
+    alpha = np.asarray(alpha, dtype=np.float64)
+    cos_h = np.asarray(cos_h, dtype=np.float64)
+    valid = (cos_i > COS_EPS) & (cos_o > COS_EPS) & (cos_h > COS_EPS)
+    ch = np.where(valid, cos_h, 1.0)
+    tan2 = (1.0 - ch * ch) / (ch * ch)
+    denom = 4.0 * np.pi * alpha * alpha * np.sqrt(np.where(valid, cos_i * cos_o, 1.0))
+    return np.where(valid, np.exp(-tan2 / (alpha * alpha)) / denom, 0.0)
+
+
+def ward_retro(alpha, cos_h) -> np.ndarray:
+    """Ward lobe with w_i = w_o = h (the HBSAB convention of §5.1): exp(-tan^2/a^2) / (4 pi a^2 cos_h)."""
+    return ward_half(alpha, cos_h, cos_h, cos_h)
+
+
+def local_frame(n: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (..., 3, 3) whose rows are (t, b, n) for unit normals ``n`` (..., 3).
+
+    ``local = frame @ world`` maps world vectors into the local frame with the normal as +z
+    (Duff et al. 2017 branchless construction).
+    """
+    n = np.asarray(n, dtype=np.float64)
+    s = np.where(n[..., 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (s + n[..., 2])
+    b = n[..., 0] * n[..., 1] * a
+    t = np.stack([1 + s * n[..., 0] ** 2 * a, s * b, -s * n[..., 0]], axis=-1)
+    bt = np.stack([b, s + n[..., 1] ** 2 * a, -n[..., 1]], axis=-1)
+    return np.stack([t, bt, n], axis=-2)
+
+
+def to_local(frame: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Express world vectors ``v`` (..., 3) in local frames from :func:`local_frame`."""
+    return np.einsum("...ij,...j->...i", frame, v)

@@ -1,0 +1,1 @@
+"""One module per ``appfusion`` subcommand; each defines ``register(subparsers)``."""
