@@ -225,7 +225,7 @@ def parse_index(data: bytes | str, path: str | os.PathLike = "index.txt", stream
         if "\\" in rel or posixpath.isabs(rel) or norm == ".." or norm.startswith("../") or norm == ".":
             problems(path, no, f"path {rel[:60]!r} does not lie inside the recording")
             continue
-        if stream is not None and norm.split("/")[0] != stream:
+        if stream is not None and not norm.startswith(stream + "/"):
             problems(path, no, f"path {rel[:60]!r} is not in the {stream}/ folder (swapped index files?)")
             continue
         if t <= last_t:
@@ -906,6 +906,9 @@ class SessionReader(Source):
                 raise SessionFormatError(ip, f"missing: meta.json declares a {s} stream") from None
             entries, bad, dropped = parse_index(data, ip, stream=s, skip_bad=self.skip_bad)
             problems.items.extend(bad)
+            if bad:  # a bad line with a readable timestamp makes that whole frame bad
+                text = dict(_split_lines(data)[0])
+                bad_ts.update(tok[0] for tok in (text[b[1]].split() for b in bad) if tok)
             self.dropped_lines.extend(dropped)
             folder = self.path / s
             try:
