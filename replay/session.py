@@ -1022,6 +1022,11 @@ class SessionReader(Source):
         """(N,) frame timestamps in seconds."""
         return self._times.copy()
 
+    @property
+    def poses(self) -> list[np.ndarray | None]:
+        """Ground-truth pose of each frame (from groundtruth.txt) or None, without decoding images."""
+        return [None if p is None else p.copy() for p in self._poses]
+
     def __getitem__(self, index: int) -> Frame:
         return self.frame(index)
 
@@ -1125,7 +1130,8 @@ def copy_session(src: Source, dst_path: str | os.PathLike, depth_units_per_m: fl
         extra = dict(smeta.get("extra") or {}) if smeta.get("format_name") == "session" else {}
         extra.setdefault("converted_from", {"path": str(getattr(src, "path", "")),
                                             "format": smeta.get("format_name", type(src).__name__)})
-        ir_bits = smeta.get("streams", {}).get("ir", {}).get("bits", smeta.get("ir_bits", 10))
+        # IR significant bits: the session's, else what the source says (Kinect v1 drivers: 10), else 16
+        ir_bits = smeta.get("streams", {}).get("ir", {}).get("bits", smeta.get("ir_bits", 16))
         em = smeta.get("emitter_position_m", (0.075, 0.0, 0.0))
         events = sorted(getattr(src, "events", []) or [], key=lambda e: e[0])
         with SessionWriter(dst_path, device=device or str(smeta.get("device", getattr(src, "name", "unknown"))),

@@ -264,3 +264,51 @@ def test_convert_redwood_to_session(redwood_dir, tmp_path):
     t = open_recording(tmp_path / "s" / "depth.txt")
     assert isinstance(t, SessionReader)
     assert len(TUMReader(tmp_path / "s")) == 5  # and it is a TUM sequence too
+
+
+# -- command line ----------------------------------------------------------------------------------
+def test_cli_info_redwood(redwood_dir, capsys):
+    from appfusion.cli import main
+
+    assert main(["info", str(redwood_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "format      redwood" in out
+    assert "depth       5 frames    30.00 Hz  640x480  fx=525.000 fy=525.000 cx=319.500 cy=239.500" in out
+    assert "frame 0: 0.955 .. 2.702 m" in out and "poses       5 of 5 frames" in out
+    assert main(["info", "--json", str(redwood_dir)]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["frames"] == 5 and d["streams"]["rgb"]["frames"] == 5 and d["duration_s"] == pytest.approx(4 / 30, abs=1e-6)
+    assert d["first_depth"]["min_m"] == pytest.approx(0.955)
+
+
+def test_cli_convert_and_info_session(tmp_path, capsys):
+    from appfusion.cli import main
+
+    K = Intrinsics(32, 24, 30, 30, 15.5, 11.5)
+    with SessionWriter(tmp_path / "a", device="kinect-v1", intrinsics={"depth": K, "ir": K, "rgb": K}) as w:
+        for i in range(6):
+            f = Frame(i, i / 30, depth=np.full((24, 32), 0.5 + 0.1 * i, np.float32))
+            if i < 4:
+                f.ir, f.pass_name = np.full((24, 32), 100.0 * i, np.float32), "geometry"
+            else:
+                f.rgb, f.pass_name = np.zeros((24, 32, 3), np.uint8), "rgb"
+            w.write(f)
+    (tmp_path / "a" / "ir" / "0.066667.png").write_bytes(b"\x89PNG\r\n\x1a\n broken")
+    assert main(["convert", str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err
+    assert "appfusion: error:" in err and "ir.txt:5" in err and "Traceback" not in err
+    assert main(["convert", "--skip-bad", "--quiet", str(tmp_path / "a"), str(tmp_path / "c")]) == 0
+    out = capsys.readouterr().out
+    assert "wrote 5 frames (depth 5, ir 3, rgb 2)" in out and "skipped 1 bad frame(s)" in out
+    assert main(["info", str(tmp_path / "c")]) == 0
+    out = capsys.readouterr().out
+    assert "format      session" in out and "device      kinect-v1" in out
+    assert "  ir          3 frames" in out and "together    depth+ir | depth+rgb" in out
+    assert "geometry         from 0.000 s to 0.100 s  3 frames" in out
+    assert "rgb              from 0.133 s to 0.167 s  2 frames" in out
+    assert "frame 0: 0.500 .. 0.500 m" in out
+    assert main(["info", str(tmp_path / "a")]) == 2  # damaged: a clear error...
+    assert main(["info", "--skip-bad", str(tmp_path / "a")]) == 0  # ...or a description listing it
+    assert "bad         1 skipped" in capsys.readouterr().out
+    assert main(["info", str(tmp_path)]) == 2
+    assert "no known recording format" in capsys.readouterr().err
