@@ -1,0 +1,293 @@
+"""Sphere fit to the mirror ball (paper §4.3): accuracy on Kinect-like depth, degenerate inputs.
+
+The depth generator here is independent of appfusion.sphere_fit: an analytic ray-sphere render of a ball
+on a support plane seen from orbiting cameras, with depth noise along the ray, missing regions (no return
+at grazing angles, random drop-outs), outlier depths on the ball and the support plane around it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from appfusion.errors import AppFusionError, EstimationError
+from appfusion.frame import Intrinsics, make_pose
+from appfusion.sphere_fit import (PointReservoir, algebraic_fit, fit_sphere, fit_sphere_from_depth, in_box,
+                                  points_from_depth)
+
+INTR = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
+CENTER = np.array([0.02, -0.01, 0.05])
+RADIUS = 0.05
+BOX = np.array([[-0.15, -0.15, 0.01], [0.15, 0.15, 0.25]])
+
+
+def look_at(eye, target):
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return make_pose(np.stack([x, np.cross(z, x), z], axis=1), eye)
+
+
+def orbit(k, dist=0.65, elev_deg=(25.0, 55.0), seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(k):
+        az = 2 * np.pi * i / k + rng.normal(0, 0.05)
+        el = np.radians(rng.uniform(*elev_deg))
+        eye = CENTER + dist * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        out.append(look_at(eye, CENTER + rng.normal(0, 0.03, 3)))
+    return out
+
+
+def render_depth(pose, sigma=0.003, drop=0.3, outliers=0.05, min_cos=0.25, seed=0):
+    """Kinect-like depth (metres, NaN invalid) of the ball on the plane z = 0."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(float)
+    dc = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1)
+    dc /= np.linalg.norm(dc, axis=-1, keepdims=True)
+    dw = dc @ pose[:3, :3].T
+    o = pose[:3, 3]
+    oc = o - CENTER
+    b = dw @ oc
+    disc = b * b - (oc @ oc - RADIUS ** 2)
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    hit = (disc > 0) & (t > 0)
+    nrm = (o + t[..., None] * dw - CENTER) / RADIUS
+    cos = -(dw * nrm).sum(-1)
+    tp = -o[2] / np.where(dw[..., 2] < -1e-9, dw[..., 2], -1e-9)
+    z = np.where(hit, t * dc[..., 2], tp * dc[..., 2])
+    z = z + rng.normal(size=z.shape) * sigma                      # noise along the ray
+    z[hit & (cos < min_cos)] = np.nan                              # a mirror returns little at grazing angles
+    z[hit & (rng.random(z.shape) < drop)] = np.nan                 # random drop-outs
+    bad = hit & (rng.random(z.shape) < outliers)
+    z[bad] += rng.uniform(-0.1, 0.1, bad.sum())                    # wrong depths on the ball
+    # a missing region: a 40-pixel square hole in the middle of the ball's image
+    cc = np.linalg.inv(pose) @ np.r_[CENTER, 1.0]
+    uc, vc = INTR.fx * cc[0] / cc[2] + INTR.cx, INTR.fy * cc[1] / cc[2] + INTR.cy
+    z[int(vc) - 20:int(vc) + 20, int(uc) - 20:int(uc) + 20] = np.nan
+    return z.astype(np.float32)
+
+
+def cap_points(n, half_deg, sigma, outlier_frac=0.0, seed=0, axis=(0.3, -0.2, 0.9)):
+    rng = np.random.default_rng(seed)
+    ax = np.asarray(axis, float)
+    ax /= np.linalg.norm(ax)
+    cosmax = np.cos(np.radians(half_deg))
+    w = rng.uniform(cosmax, 1.0, n)                                # uniform on the cap
+    phi = rng.uniform(0, 2 * np.pi, n)
+    e1 = np.cross(ax, [1.0, 0, 0]) if abs(ax[0]) < 0.9 else np.cross(ax, [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(ax, e1)
+    s = np.sqrt(1 - w * w)
+    d = w[:, None] * ax + s[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    p = CENTER + RADIUS * d + rng.normal(size=(n, 3)) * sigma
+    k = int(outlier_frac * n)
+    if k:
+        p = np.vstack([p, CENTER + rng.uniform(-0.12, 0.12, (k, 3))])
+    return p
+
+
+# -- accuracy ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("sigma", [0.002, 0.005])
+def test_fit_from_noisy_partial_depth(sigma):
+    poses = orbit(6, seed=1)
+    frames = [(render_depth(p, sigma=sigma, seed=i), INTR, p) for i, p in enumerate(poses)]
+    f = fit_sphere_from_depth(frames, box=BOX, stride=2, inlier_threshold_m=max(0.01, 2.5 * sigma))
+    assert np.linalg.norm(f.center - CENTER) < 0.002, f
+    assert abs(f.radius - RADIUS) / RADIUS < 0.02, f
+    assert 0.7 < f.inlier_fraction < 1.0
+    assert f.rms_m == pytest.approx(sigma, rel=0.5)
+    assert np.isfinite([f.radius, f.rms_m, f.radius_std_m, f.center_std_m]).all()
+
+
+def test_fit_with_known_radius_from_one_view():
+    pose = orbit(1, seed=3)[0]
+    pts = points_from_depth(render_depth(pose, sigma=0.004, seed=3), INTR, pose, BOX)
+    f = fit_sphere(pts, radius=RADIUS)
+    assert f.radius_fixed and f.radius == RADIUS and f.radius_std_m == 0.0
+    assert np.linalg.norm(f.center - CENTER) < 0.002
+
+
+def test_fit_cap_with_outliers_and_residuals():
+    p = cap_points(4000, 80, 0.002, outlier_frac=0.15, seed=4)
+    f = fit_sphere(p)
+    assert np.linalg.norm(f.center - CENTER) < 0.001
+    assert abs(f.radius - RADIUS) < 0.001
+    assert f.inlier_fraction == pytest.approx(4000 / 4600, abs=0.03)
+    r = f.residuals(p[:4000])
+    assert abs(np.median(r)) < 0.0005 and r.std() == pytest.approx(0.002, rel=0.2)
+
+
+def test_algebraic_fit_exact_on_clean_points():
+    p = cap_points(50, 120, 0.0, seed=5)
+    c, r = algebraic_fit(p)
+    assert np.allclose(c, CENTER, atol=1e-9) and r == pytest.approx(RADIUS, abs=1e-9)
+
+
+def test_nan_rows_dropped_not_propagated():
+    p = cap_points(500, 90, 0.001, seed=6)
+    p[::7] = np.nan
+    p[3, 1] = np.inf
+    f = fit_sphere(p)
+    assert np.isfinite(f.center).all() and np.linalg.norm(f.center - CENTER) < 0.001
+    assert f.n_points == int(np.isfinite(p).all(axis=1).sum())
+
+
+def test_deterministic_with_seed():
+    p = cap_points(3000, 70, 0.003, outlier_frac=0.2, seed=7)
+    a, b = fit_sphere(p, seed=3), fit_sphere(p, seed=3)
+    assert np.array_equal(a.center, b.center) and a.radius == b.radius
+
+
+# -- clear errors on degenerate input -------------------------------------------------------------------
+
+def _assert_error_or_finite(fn):
+    try:
+        f = fn()
+    except EstimationError as e:
+        assert str(e)            # a message naming the problem
+        return None
+    assert np.isfinite(f.center).all() and np.isfinite([f.radius, f.rms_m, f.inlier_fraction]).all()
+    return f
+
+
+FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+coord = st.floats(-2.0, 2.0, allow_nan=False)
+
+
+@FAST
+@given(n=st.integers(0, 9), seed=st.integers(0, 2**31))
+def test_too_few_points(n, seed):
+    p = np.random.default_rng(seed).normal(size=(n, 3))
+    with pytest.raises(EstimationError, match="too few points"):
+        fit_sphere(p)
+
+
+@FAST
+@given(n=st.integers(10, 400), seed=st.integers(0, 2**31), normal=st.tuples(coord, coord, coord),
+       offset=coord, extent=st.floats(0.01, 2.0))
+def test_coplanar_points(n, seed, normal, offset, extent):
+    nv = np.asarray(normal)
+    if np.linalg.norm(nv) < 1e-3:
+        nv = np.array([0.0, 0.0, 1.0])
+    nv = nv / np.linalg.norm(nv)
+    e1 = np.cross(nv, [1.0, 0, 0]) if abs(nv[0]) < 0.9 else np.cross(nv, [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nv, e1)
+    ab = np.random.default_rng(seed).uniform(-extent, extent, (n, 2))
+    p = offset * nv + ab[:, :1] * e1 + ab[:, 1:] * e2
+    with pytest.raises(EstimationError, match="coplanar|collinear|coincide"):
+        fit_sphere(p)
+    with pytest.raises(EstimationError, match="coplanar|collinear|coincide"):
+        fit_sphere(p, radius=0.05)
+
+
+@FAST
+@given(n=st.integers(10, 300), point=st.tuples(coord, coord, coord), direction=st.tuples(coord, coord, coord),
+       seed=st.integers(0, 2**31))
+def test_collinear_or_coincident_points(n, point, direction, seed):
+    t = np.random.default_rng(seed).uniform(-1, 1, n)
+    p = np.asarray(point) + t[:, None] * np.asarray(direction)
+    with pytest.raises(EstimationError, match="collinear|coincide|coplanar"):
+        fit_sphere(p)
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(half=st.floats(0.5, 6.0), sigma=st.floats(0.0005, 0.004), n=st.integers(30, 1500),
+       seed=st.integers(0, 2**31))
+def test_tiny_patch_cannot_give_radius(half, sigma, n, seed):
+    """A cap a few degrees wide bulges less than the noise: the radius is undetermined."""
+    p = cap_points(n, half, sigma, seed=seed)
+    with pytest.raises(EstimationError):
+        fit_sphere(p)
+
+
+@FAST
+@given(n=st.integers(10, 3000), extent=st.floats(0.02, 1.5), kind=st.sampled_from(["cube", "gauss", "slab"]),
+       seed=st.integers(0, 2**31))
+def test_all_outliers(n, extent, kind, seed):
+    """Clouds with no sphere in them are rejected, whatever their size."""
+    rng = np.random.default_rng(seed)
+    if kind == "cube":
+        p = rng.uniform(0, extent, (n, 3))
+    elif kind == "gauss":
+        p = rng.normal(0, extent, (n, 3))
+    else:
+        p = rng.uniform(0, extent, (n, 3)) * [1, 1, 0.1]
+    with pytest.raises(EstimationError):
+        fit_sphere(p)
+
+
+@FAST
+@given(arr=st.lists(st.tuples(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                              st.floats(allow_nan=True, allow_infinity=True, width=64),
+                              st.floats(allow_nan=True, allow_infinity=True, width=64)), max_size=60))
+def test_arbitrary_input_never_nan(arr):
+    p = np.array(arr, dtype=float).reshape(-1, 3)
+    _assert_error_or_finite(lambda: fit_sphere(p))
+    _assert_error_or_finite(lambda: fit_sphere(p, radius=0.1))
+
+
+@FAST
+@given(half=st.floats(40, 180), sigma=st.floats(0.0, 0.004), n=st.integers(40, 2000),
+       out=st.floats(0.0, 0.3), seed=st.integers(0, 2**31))
+def test_good_caps_are_fitted_or_rejected_cleanly(half, sigma, n, out, seed):
+    f = _assert_error_or_finite(lambda: fit_sphere(cap_points(n, half, sigma, out, seed=seed)))
+    if f is not None and half >= 60 and n >= 300 and out <= 0.2:
+        assert np.linalg.norm(f.center - CENTER) < 0.003
+
+
+def test_bad_arguments():
+    p = cap_points(200, 90, 0.001)
+    with pytest.raises(EstimationError, match=r"shape \(N, 3\)"):
+        fit_sphere(np.zeros((10, 2)))
+    with pytest.raises(EstimationError, match="metres"):
+        fit_sphere(p * 1e6)
+    with pytest.raises(AppFusionError, match="radius"):
+        fit_sphere(p, radius=-1.0)
+    with pytest.raises(AppFusionError, match="inlier_threshold_m"):
+        fit_sphere(p, inlier_threshold_m=0.0)
+    with pytest.raises(EstimationError, match="plausible range"):
+        fit_sphere(p, radius_range_m=(0.1, 1.0))
+    with pytest.raises(EstimationError, match="points must be numbers"):
+        fit_sphere([["a", "b", "c"]] * 20)
+
+
+# -- points from depth ---------------------------------------------------------------------------------
+
+def test_points_from_depth_crop_and_errors():
+    pose = orbit(1, seed=2)[0]
+    z = render_depth(pose, sigma=0.0, drop=0.0, outliers=0.0, min_cos=0.0)
+    pts = points_from_depth(z, INTR, pose, BOX, stride=1)
+    d = np.linalg.norm(pts - CENTER, axis=1)
+    assert len(pts) > 1000 and np.abs(d - RADIUS).max() < 1e-4   # only the ball survives the box
+    allp = points_from_depth(z, INTR, pose)
+    assert len(allp) > 10 * len(pts) and np.abs(allp[:, 2]).min() < 1e-4  # the plane is there without a box
+    with pytest.raises(AppFusionError, match="does not match"):
+        points_from_depth(z[:-1], INTR, pose)
+    with pytest.raises(AppFusionError, match="4x4"):
+        points_from_depth(z, INTR, np.eye(3))
+    with pytest.raises(AppFusionError, match="object box"):
+        in_box(pts, [[0, 0, 0], [-1, 1, 1]])
+
+    class Box:
+        def contains(self, q):
+            return q[:, 2] > 0.05
+
+    assert in_box(pts, Box()).sum() == (pts[:, 2] > 0.05).sum()
+
+
+def test_reservoir_is_uniform_and_bounded():
+    r = PointReservoir(capacity=1000, seed=1)
+    for k in range(50):                       # 50 batches of 200 points, tagged by batch number
+        r.add(np.column_stack([np.full(200, k), np.zeros(200), np.zeros(200)]))
+    assert len(r) == 1000 and r.seen == 10000
+    counts = np.bincount(r.points[:, 0].astype(int), minlength=50)
+    # uniform: each batch keeps ~20 points; no batch is over- or under-represented grossly
+    assert counts.min() >= 5 and counts.max() <= 40 and abs(counts[:25].sum() - 500) < 80
+    with pytest.raises(AppFusionError):
+        PointReservoir(0)
