@@ -39,13 +39,13 @@ def _depth(u):
     return d
 
 
-def _kinect_v1_session(path, n=6, rgb_encoding="srgb8", seed=0):
+def _kinect_v1_session(path, n=6, rgb_encoding="srgb8", seed=0, **kw):
     """A Kinect-v1-like session: depth+IR frames (geometry pass) then depth+RGB frames (rgb pass)."""
     rng = np.random.default_rng(seed)
     frames = []
     with SessionWriter(path, device="kinect-v1-sim", intrinsics={"depth": K_D, "ir": K_I, "rgb": K_C},
                        depth_to_rgb=D2RGB, rgb_encoding=rgb_encoding, notes="unit test",
-                       extra={"object": "mug"}) as w:
+                       extra={"object": "mug"}, **kw) as w:
         w.event(0.0, "pass", "geometry")
         w.event(0.0, "emitter", "on")
         for i in range(n):
@@ -70,7 +70,7 @@ def _kinect_v1_session(path, n=6, rgb_encoding="srgb8", seed=0):
 
 def test_round_trip_bit_exact(tmp_path):
     path = tmp_path / "s"
-    frames = _kinect_v1_session(path)
+    frames = _kinect_v1_session(path, fsync_interval_s=0.0)
     r = SessionReader(path)
     assert isinstance(r, Source) and r.is_recording
     assert len(r) == len(frames) == 6
@@ -101,7 +101,7 @@ def test_round_trip_bit_exact(tmp_path):
 
 
 def test_round_trip_linear16(tmp_path):
-    frames = _kinect_v1_session(tmp_path / "s", rgb_encoding="linear")
+    frames = _kinect_v1_session(tmp_path / "s", rgb_encoding="linear", threads=3)
     r = SessionReader(tmp_path / "s")
     assert r.meta["streams"]["rgb"]["encoding"] == "linear16"
     for f, g in zip(frames, r):
