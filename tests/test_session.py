@@ -246,7 +246,10 @@ def test_copy_session_preserves_everything(tmp_path):
         assert (g.timestamp, g.streams, g.pass_name, g.emitter) == (fa.timestamp, fa.streams, fa.pass_name, fa.emitter)
         np.testing.assert_allclose(g.pose, f.pose, atol=1e-9)
     for name in ("depth", "ir", "rgb"):
-        assert sorted(os.listdir(tmp_path / "a" / name)) == sorted(os.listdir(tmp_path / "b" / name))
+        files = sorted(os.listdir(tmp_path / "a" / name))
+        assert files == sorted(os.listdir(tmp_path / "b" / name)) and files
+        for fn in files:  # a frame read from a session writes back to identical PNGs
+            assert (tmp_path / "a" / name / fn).read_bytes() == (tmp_path / "b" / name / fn).read_bytes()
 
 
 def _kill_round(tmp_path, run_s):
