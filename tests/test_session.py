@@ -301,3 +301,20 @@ def test_kill_9_mid_recording_replays(tmp_path):
     n = _kill_round(tmp_path, 1.6) + _kill_round(tmp_path, 1.13)
     print(f"frames written before the kills: {n}")
     assert n > 20
+
+
+def test_empty_session_and_streams_declared_late(tmp_path, capsys):
+    from appfusion.cli import main
+
+    with SessionWriter(tmp_path / "e", device="nothing yet"):
+        pass
+    r = SessionReader(tmp_path / "e")
+    assert len(r) == 0 and list(r) == [] and r.caps.streams == frozenset() and r.meta["streams"] == {}
+    assert main(["info", str(tmp_path / "e")]) == 0
+    assert "no depth images" in capsys.readouterr().out
+    # meta.json exists from the start, and gains the stream of the first frame
+    w = SessionWriter(tmp_path / "l")
+    assert json.loads((tmp_path / "l" / "meta.json").read_text())["streams"] == {}
+    w.write(Frame(0, 0.0, depth=np.ones((H, W), np.float32), depth_intrinsics=K_D))
+    assert SessionReader(tmp_path / "l").intrinsics == {"depth": K_D}  # readable before close
+    w.close()

@@ -325,3 +325,12 @@ def test_fuzz_meta_bytes(data):
 
 def test_errors_are_appfusion_errors():
     assert issubclass(SessionFormatError, AppFusionError)
+
+
+def test_check_images_false_defers_to_reading(sess):
+    p = sess / "rgb" / "1.100000.png"
+    p.write_bytes(p.read_bytes()[:100])
+    r = SessionReader(sess, check_images=False)
+    assert len(r) == N and r[0].rgb is not None
+    with pytest.raises(SessionFormatError, match=r"1.100000.png: cannot decode image \(100 bytes\) \(from .*rgb.txt:4\)"):
+        r[1]
