@@ -1,8 +1,8 @@
 """Sphere fit to the mirror ball (paper §4.3): accuracy on Kinect-like depth, degenerate inputs.
 
-The depth generator here is independent of appfusion.sphere_fit: an analytic ray-sphere render of a ball
+Depth comes from the independent generator in tests/_mirrorball.py: an analytic ray-sphere render of a ball
 on a support plane seen from orbiting cameras, with depth noise along the ray, missing regions (no return
-at grazing angles, random drop-outs), outlier depths on the ball and the support plane around it.
+at grazing angles, random drop-outs, a hole), outlier depths on the ball and the support plane around it.
 """
 
 from __future__ import annotations
@@ -12,63 +12,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from _mirrorball import BOX, CENTER, INTR, RADIUS, orbit, render_depth
 from appfusion.errors import AppFusionError, EstimationError
-from appfusion.frame import Intrinsics, make_pose
 from appfusion.sphere_fit import (PointReservoir, algebraic_fit, fit_sphere, fit_sphere_from_depth, in_box,
                                   points_from_depth)
-
-INTR = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
-CENTER = np.array([0.02, -0.01, 0.05])
-RADIUS = 0.05
-BOX = np.array([[-0.15, -0.15, 0.01], [0.15, 0.15, 0.25]])
-
-
-def look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return make_pose(np.stack([x, np.cross(z, x), z], axis=1), eye)
-
-
-def orbit(k, dist=0.65, elev_deg=(25.0, 55.0), seed=0):
-    rng = np.random.default_rng(seed)
-    out = []
-    for i in range(k):
-        az = 2 * np.pi * i / k + rng.normal(0, 0.05)
-        el = np.radians(rng.uniform(*elev_deg))
-        eye = CENTER + dist * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
-        out.append(look_at(eye, CENTER + rng.normal(0, 0.03, 3)))
-    return out
-
-
-def render_depth(pose, sigma=0.003, drop=0.3, outliers=0.05, min_cos=0.25, seed=0):
-    """Kinect-like depth (metres, NaN invalid) of the ball on the plane z = 0."""
-    rng = np.random.default_rng(seed)
-    v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(float)
-    dc = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1)
-    dc /= np.linalg.norm(dc, axis=-1, keepdims=True)
-    dw = dc @ pose[:3, :3].T
-    o = pose[:3, 3]
-    oc = o - CENTER
-    b = dw @ oc
-    disc = b * b - (oc @ oc - RADIUS ** 2)
-    t = -b - np.sqrt(np.maximum(disc, 0.0))
-    hit = (disc > 0) & (t > 0)
-    nrm = (o + t[..., None] * dw - CENTER) / RADIUS
-    cos = -(dw * nrm).sum(-1)
-    tp = -o[2] / np.where(dw[..., 2] < -1e-9, dw[..., 2], -1e-9)
-    z = np.where(hit, t * dc[..., 2], tp * dc[..., 2])
-    z = z + rng.normal(size=z.shape) * sigma                      # noise along the ray
-    z[hit & (cos < min_cos)] = np.nan                              # a mirror returns little at grazing angles
-    z[hit & (rng.random(z.shape) < drop)] = np.nan                 # random drop-outs
-    bad = hit & (rng.random(z.shape) < outliers)
-    z[bad] += rng.uniform(-0.1, 0.1, bad.sum())                    # wrong depths on the ball
-    # a missing region: a 40-pixel square hole in the middle of the ball's image
-    cc = np.linalg.inv(pose) @ np.r_[CENTER, 1.0]
-    uc, vc = INTR.fx * cc[0] / cc[2] + INTR.cx, INTR.fy * cc[1] / cc[2] + INTR.cy
-    z[int(vc) - 20:int(vc) + 20, int(uc) - 20:int(uc) + 20] = np.nan
-    return z.astype(np.float32)
 
 
 def cap_points(n, half_deg, sigma, outlier_frac=0.0, seed=0, axis=(0.3, -0.2, 0.9)):
