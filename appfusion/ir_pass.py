@@ -1,0 +1,233 @@
+"""The IR pass: IR frames -> registered reflectance samples -> BRDF-cut leaf HBSABs (paper §5.1, §5.2).
+
+For every IR frame (with its depth image and tracked pose) the pass
+
+1. registers each valid depth pixel to the nearest sampled surface point
+   (:func:`appfusion.points.register_pixels`, the §4.1 spatial grid; points facing away are not
+   matched),
+2. back-projects the pixel to its 3-D point ``X`` (world frame) and forms the directions to the camera
+   ``w_o = (C - X) / |C - X|`` and to the emitter ``w_i = (E - X) / |E - X|`` (``E`` = the emitter position,
+   ``meta["emitter_position_m"]`` in the depth-camera frame, moved to the world by the pose), both
+   rotated into the local frame of the registered point (its normal = +z),
+3. turns the raw IR value into a reflectance sample with the device profile
+   (``calibration.ir_profile.IRProfile.apply``: ``((raw - b0) / gain)^(1/gamma) / (E[x](|E - X|) cos theta_i)``;
+   saturated pixels keep their clipped value and are counted per texel, so that the Ward fit can
+   leave out texels a clipped highlight biased),
+4. adds the samples to the HBSABs of the points' BRDF-cut leaves (Eq. 3; samples with ``theta_i`` or
+   ``theta_o`` beyond the grazing cut-off are dropped), one ``bincount`` per channel for the frame.
+
+:meth:`IRPass.result` runs the cut, the clustering and the Ward fits (:class:`appfusion.brdf_cut.BRDFCut`).
+The state is the leaf HBSAB array plus the tree: its size depends on the points and ``hbsab_n`` only,
+never on the number of frames.
+
+The IR image must be on the depth image's pixel grid (Kinect v1: ``depth_to_ir`` is the identity;
+Azure Kinect and OAK-D give depth registered to their IR/mono camera).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .brdf import local_frame
+from .brdf_cut import BRDFCut, CutResult
+from .errors import AppFusionError
+from .frame import Intrinsics
+from .hbsab import CH_SAT, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, _channels
+
+
+class IRPass:
+    """Accumulates IR frames into BRDF-cut HBSABs and clusters / fits them (paper §5.1-5.2).
+
+    Parameters
+    ----------
+    positions, normals : (N, 3) arrays
+        Sampled surface points (world = marker frame, metres) and unit normals (paper §4.1).
+    profile : calibration.ir_profile.IRProfile
+        IR device profile (background, response, emitter model).
+    hbsab_n : int
+        HBSAB texels per side (default 32).
+    min_leaf : int
+        Minimum points per BRDF-cut leaf (default 64).
+    max_angle_deg : float
+        Grazing cut-off for ``w_i`` and ``w_o`` (default 80 degrees).
+    max_dist : float, optional
+        Largest pixel-to-point registration distance, metres (default: 1.5 x the point spacing).
+    areas : (N,) array, optional
+        Point areas for area-weighted merging.
+    k : int, optional
+        Number of clusters (None: automatic).
+    **cut_kwargs
+        Further :class:`appfusion.brdf_cut.BRDFCut` parameters (reliability, k selection, fitting).
+
+    Attributes
+    ----------
+    cut : BRDFCut
+    stats : dict
+        Counters: frames, registered pixels, samples used, of those saturated (kept, clipped and
+        flagged), dropped as grazing (or non-finite); time spent in the HBSAB update (``update_s``).
+    """
+
+    def __init__(self, positions, normals, profile, hbsab_n: int = DEFAULT_N, min_leaf: int = 64,
+                 max_angle_deg: float = DEFAULT_MAX_ANGLE_DEG, max_dist: float | None = None, areas=None,
+                 k: int | None = None, **cut_kwargs):
+        self.cut = BRDFCut(positions, normals, n=hbsab_n, min_leaf=min_leaf, max_angle_deg=max_angle_deg,
+                           areas=areas, k=k, **cut_kwargs)
+        self.positions = np.ascontiguousarray(self.cut.positions, dtype=np.float32)
+        self.normals = np.ascontiguousarray(self.cut.normals, dtype=np.float32)
+        self.profile = profile
+        self.max_dist = max_dist
+        F = local_frame(self.cut.normals).reshape(-1, 9)      # rows t, b, n
+        self._nf = [np.ascontiguousarray(F[:, j], dtype=np.float32) for j in range(9)]
+        n2 = self.cut.n * self.cut.n
+        self._leaf_key = self.cut.tree.point_leaf.astype(np.int64) * n2
+        self._cos_max = np.float32(np.cos(np.radians(max_angle_deg)))
+        self.stats = {"frames": 0, "registered": 0, "used": 0, "saturated": 0, "grazing": 0, "update_s": 0.0}
+
+    # -- frames ----------------------------------------------------------------------------------
+    def add_frame(self, ir: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
+                  emitter_position=None) -> int:
+        """Add one IR frame (paper §5.1).
+
+        Parameters
+        ----------
+        ir : (H, W) array
+            Raw IR, counts, on the depth image's pixel grid.
+        depth : (H, W) float array
+            Metres, NaN invalid.
+        intrinsics : Intrinsics
+            Of the depth (= IR) image.
+        pose : (4, 4) array
+            Camera-to-world pose of the depth camera.
+        emitter_position : 3 floats, optional
+            Emitter in the depth-camera frame, metres (default: the profile's).
+
+        Returns
+        -------
+        int
+            Samples added.
+        """
+        from .points import register_pixels
+
+        ir = np.asarray(ir)
+        depth = np.asarray(depth, dtype=np.float32)
+        if ir.shape != depth.shape or depth.shape != intrinsics.shape:
+            raise AppFusionError(f"IR pass: IR image {ir.shape}, depth {depth.shape} and intrinsics "
+                                 f"{intrinsics.shape} must be the same size (IR registered to depth)")
+        T = np.asarray(pose, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise AppFusionError(f"IR pass: pose must be a finite 4x4 matrix, got shape {T.shape}")
+        e = np.asarray(self.profile.emitter_position_m if emitter_position is None else emitter_position,
+                       dtype=np.float64).reshape(3)
+        pix, pts = register_pixels(self.positions, self.normals, depth, intrinsics, T, self.max_dist)
+        self.stats["frames"] += 1
+        if len(pix) == 0:
+            return 0
+        W = intrinsics.width
+        z = depth.ravel()[pix]
+        u = (pix % W).astype(np.float32)
+        v = (pix // W).astype(np.float32)
+        xc = (u - np.float32(intrinsics.cx)) * np.float32(1.0 / intrinsics.fx) * z
+        yc = (v - np.float32(intrinsics.cy)) * np.float32(1.0 / intrinsics.fy) * z
+        R = T[:3, :3].astype(np.float32)
+        t = T[:3, 3]
+        X = [R[a, 0] * xc + R[a, 1] * yc + R[a, 2] * z + np.float32(t[a]) for a in range(3)]
+        emitter_world = T[:3, :3] @ e + t
+        raw = ir.ravel()[pix]
+        self.stats["registered"] += len(pix)
+        return self._add(pts, X[0], X[1], X[2], raw, t, emitter_world)
+
+    def add_samples(self, point_idx: np.ndarray, points: np.ndarray, camera_center, emitter_center,
+                    raw: np.ndarray) -> int:
+        """Add registered pixels (steps 2-4 of the module docstring); the per-frame hot path.
+
+        Parameters
+        ----------
+        point_idx : (m,) int array
+            Registered point of each pixel.
+        points : (m, 3) array
+            The pixels' 3-D points, world frame, metres.
+        camera_center, emitter_center : 3 floats
+            Camera centre and emitter position, world frame, metres.
+        raw : (m,) array
+            Raw IR values, counts.
+
+        Returns
+        -------
+        int
+            Samples added (grazing ones and non-finite values are dropped; saturated ones are kept
+            with their clipped value and flagged, see :mod:`appfusion.hbsab`).
+        """
+        X = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+        return self._add(point_idx, X[:, 0], X[:, 1], X[:, 2], raw, camera_center, emitter_center)
+
+    def _add(self, point_idx, xs, ys, zs, raw, camera_center, emitter_center) -> int:
+        t0 = time.perf_counter()
+        f32 = np.float32
+        pidx = np.asarray(point_idx, dtype=np.int64).reshape(-1)
+        raw = np.asarray(raw, dtype=f32).reshape(-1)
+        if not (len(pidx) == len(xs) == len(raw)):
+            raise AppFusionError(f"IR pass: {len(pidx)} point indices, {len(xs)} points and {len(raw)} IR values")
+        if len(pidx) == 0:
+            return 0
+        Cx, Cy, Cz = (f32(c) for c in np.asarray(camera_center, dtype=np.float64).reshape(3))
+        Ex, Ey, Ez = (f32(c) for c in np.asarray(emitter_center, dtype=np.float64).reshape(3))
+        Nf = self._nf
+        nx, ny, nz = Nf[6][pidx], Nf[7][pidx], Nf[8][pidx]
+        ox, oy, oz = Cx - xs, Cy - ys, Cz - zs                # towards the camera
+        ix, iy, iz = Ex - xs, Ey - ys, Ez - zs                # towards the emitter
+        ilo = 1.0 / np.sqrt(ox * ox + oy * oy + oz * oz)
+        di = np.sqrt(ix * ix + iy * iy + iz * iz)
+        idi = 1.0 / di
+        co = (nx * ox + ny * oy + nz * oz) * ilo
+        ci = (nx * ix + ny * iy + nz * iz) * idi
+        cm = self._cos_max
+        keep = (co > cm) & (ci > cm) & np.isfinite(raw)
+        n_drop = int(len(keep) - np.count_nonzero(keep))
+        if n_drop:
+            sel = np.flatnonzero(keep)
+            pidx, ox, oy, oz, ix, iy, iz, ilo, di, idi, co, ci, raw = (
+                a[sel] for a in (pidx, ox, oy, oz, ix, iy, iz, ilo, di, idi, co, ci, raw))
+        m = len(pidx)
+        if m == 0:
+            self._count(0, 0, n_drop, t0)
+            return 0
+        # world half vector (unnormalised sum of unit vectors), then its local x, y; local z = ci + co
+        hx = ox * ilo + ix * idi
+        hy = oy * ilo + iy * idi
+        hz = oz * ilo + iz * idi
+        hlx = Nf[0][pidx] * hx + Nf[1][pidx] * hy + Nf[2][pidx] * hz
+        hly = Nf[3][pidx] * hx + Nf[4][pidx] * hy + Nf[5][pidx] * hz
+        satv = f32(self.profile.saturation)
+        sat = raw >= satv
+        n_sat = int(np.count_nonzero(sat))
+        if n_sat:
+            raw = np.where(sat, satv, raw)
+        value = self.profile.apply_valid(raw, di, ci)
+        s = _channels(hlx, hly, ci + co, ci, co, value, co, self.cut.n)
+        if n_sat:
+            s.channels[CH_SAT] = np.where(sat, co, f32(0.0))
+        self.cut.leaves.add(self._leaf_key[pidx] + s.texel, s.channels)
+        self._count(m, n_sat, n_drop, t0)
+        return m
+
+    def _count(self, used, sat, graze, t0):
+        self.stats["used"] += used
+        self.stats["saturated"] += sat
+        self.stats["grazing"] += graze
+        self.stats["update_s"] += time.perf_counter() - t0
+
+    # -- results -------------------------------------------------------------------------------
+    def result(self, k: int | None = None, fit: bool = True) -> CutResult:
+        """Clusters, labels and Ward fits so far (:meth:`appfusion.brdf_cut.BRDFCut.result`)."""
+        return self.cut.result(k=k, fit=fit)
+
+    def set_labels(self, point_idx, label: int) -> None:
+        """Manual refinement: paint points with a cluster label (persists across re-clustering)."""
+        self.cut.set_labels(point_idx, label)
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the pass's state, bytes (independent of the number of frames added)."""
+        return int(self.cut.nbytes + sum(a.nbytes for a in self._nf) + self._leaf_key.nbytes)
