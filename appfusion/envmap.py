@@ -412,10 +412,15 @@ class EnvMapAccumulator:
         Samples with ``w_o . n`` below this are skipped (grazing views smear).
     min_weight : float
         A texel counts as measured when its summed weight exceeds this.
+    exclude_viewer_deg : float
+        Skip samples whose reflected direction lies within this angle of the direction from the ball to
+        the camera: there the ball shows the camera and the user holding it (paper §4.3: "lighting
+        occlusion by the user"). 0 (default) keeps them, as the paper does, relying on the multi-view
+        average; 15-20 degrees removes the user's reflection when the views surround the ball.
     """
 
     def __init__(self, n: int = 128, rho_mirror: float | np.ndarray = 1.0, min_cos: float = 0.1,
-                 min_weight: float = 0.0):
+                 min_weight: float = 0.0, exclude_viewer_deg: float = 0.0):
         n = int(n)
         if n < 2:
             raise AppFusionError(f"environment map side must be at least 2, got {n}")
@@ -427,6 +432,9 @@ class EnvMapAccumulator:
         self.n = n
         self.rho_mirror = rho
         self.min_cos = float(min_cos)
+        if not 0.0 <= exclude_viewer_deg < 90.0:
+            raise AppFusionError(f"exclude_viewer_deg must be in [0, 90), got {exclude_viewer_deg}")
+        self.exclude_viewer_deg = float(exclude_viewer_deg)
         self.min_weight = float(min_weight)
         self._w = np.zeros(2 * n * n)              # summed weights
         self._mean = np.zeros((2 * n * n, 3))      # weighted mean radiance
@@ -566,6 +574,8 @@ class EnvMapAccumulator:
         off = (np.arange(s) + 0.5) / s - 0.5
         oy, ox = np.meshgrid(off, off, indexing="ij")
         ox, oy = ox.reshape(1, -1), oy.reshape(1, -1)
+        to_cam = -cc / dist                              # camera-frame direction from the ball to the camera
+        cos_viewer = np.cos(np.radians(self.exclude_viewer_deg))
         idx: list[np.ndarray] = []
         wts: list[np.ndarray] = []
         wv: list[np.ndarray] = []
@@ -590,7 +600,11 @@ class EnvMapAccumulator:
             if not ok.any():
                 continue
             d, nrm, cos_o, src = d[ok], nrm[ok], cos_o[ok], src[ok]
-            refl_w = (d + 2.0 * cos_o[:, None] * nrm) @ Rw.T   # r = d - 2 (d . n) n, in the world frame
+            refl = d + 2.0 * cos_o[:, None] * nrm         # r = d - 2 (d . n) n
+            if self.exclude_viewer_deg > 0:
+                ok = refl @ to_cam < cos_viewer
+                refl, cos_o, src = refl[ok], cos_o[ok], src[ok]
+            refl_w = refl @ Rw.T                          # into the world (marker) frame
             w = cos_o / (s * s)
             idx.append(octa.sphere_texel_index(refl_w, self.n))
             wts.append(w)
@@ -627,7 +641,8 @@ class EnvMapAccumulator:
         w = self._w.reshape(2, n, n)
         cov = w > self.min_weight
         rad = np.where(cov[..., None], self._mean.reshape(2, n, n, 3), 0.0).astype(np.float32)
-        m = {"rho_mirror": self.rho_mirror.tolist(), "min_cos": self.min_cos, "n_samples": int(self.n_samples),
+        m = {"rho_mirror": self.rho_mirror.tolist(), "min_cos": self.min_cos,
+             "exclude_viewer_deg": self.exclude_viewer_deg, "n_samples": int(self.n_samples),
              "n_views": int(self.n_views), "units": "linear RGB relative to the reference white (paper 4.2)"}
         m.update(meta or {})
         return EnvMap(rad, w.astype(np.float32), cov, np.zeros_like(cov), "marker", m)

@@ -196,9 +196,13 @@ def _ransac(p: np.ndarray, tau: float, radius: float | None, r_range: tuple[floa
     return out
 
 
-def _refine(p: np.ndarray, c0: np.ndarray, r0: float, radius: float | None, f_scale: float
-            ) -> tuple[np.ndarray, float, np.ndarray]:
-    """Geometric least squares with a soft-L1 loss; returns centre, radius and the Jacobian at the end."""
+def _refine(p: np.ndarray, c0: np.ndarray, r0: float, radius: float | None, f_scale: float,
+            r_bounds: tuple[float, float] | None = None) -> tuple[np.ndarray, float, np.ndarray]:
+    """Geometric least squares with a soft-L1 loss; returns centre, radius and the Jacobian at the end.
+
+    ``r_bounds`` (when the radius is free) keeps the radius in a box so that a hopeless start (a plane,
+    a blob) cannot run the solver off to an infinite sphere.
+    """
     m = p.mean(axis=0)
     q = p - m
 
@@ -221,8 +225,13 @@ def _refine(p: np.ndarray, c0: np.ndarray, r0: float, radius: float | None, f_sc
             return -d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
 
         x0 = np.asarray(c0 - m, dtype=np.float64)
-    res = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=f_scale, method="trf", x_scale="jac",
-                        max_nfev=100)
+    bounds = (-np.inf, np.inf)
+    if radius is None and r_bounds is not None:
+        lo, hi = float(r_bounds[0]), float(r_bounds[1])
+        x0[3] = np.clip(x0[3], lo * 1.0001, hi * 0.9999)
+        bounds = (np.array([-np.inf, -np.inf, -np.inf, lo]), np.array([np.inf, np.inf, np.inf, hi]))
+    res = least_squares(fun, x0, jac=jac, bounds=bounds, loss="soft_l1", f_scale=f_scale, method="trf",
+                        x_scale="jac", max_nfev=50)
     x = res.x
     if radius is None:
         return x[:3] + m, float(x[3]), jac(x)
@@ -230,7 +239,8 @@ def _refine(p: np.ndarray, c0: np.ndarray, r0: float, radius: float | None, f_sc
 
 
 def _robust_refine(p: np.ndarray, c: np.ndarray, r: float, radius: float | None, tau: float,
-                   min_points: int, where: str) -> tuple[np.ndarray, float, float]:
+                   min_points: int, where: str, r_bounds: tuple[float, float] | None = None
+                   ) -> tuple[np.ndarray, float, float]:
     """Robust geometric least squares from a start (c, r); returns centre, radius and noise sigma.
 
     A few rounds, each on the points within a band around the current sphere that shrinks to 3 sigma of
@@ -244,7 +254,7 @@ def _robust_refine(p: np.ndarray, c: np.ndarray, r: float, radius: float | None,
         if near.sum() < min_points:
             break
         sigma = float(np.clip(1.4826 * np.median(d[near]), 2e-4, tau))
-        c, r, _ = _refine(p[near], c, r, radius, sigma)
+        c, r, _ = _refine(p[near], c, r, radius, sigma, r_bounds)
         if not (np.isfinite(c).all() and np.isfinite(r)):
             raise EstimationError(f"{where}: least squares diverged on {len(p)} points")
         band = float(np.clip(3.0 * sigma, 1e-3, tau))
@@ -319,7 +329,8 @@ def fit_sphere(points: Any, radius: float | None = None, *, inlier_threshold_m: 
         except EstimationError as e:
             raise EstimationError(f"{where}: no sphere candidate from {n} points ({e})") from None
         cands = [(c, radius if radius is not None else r)]
-    refined = [_robust_refine(p, c, r, radius, tau, min_points, where) for c, r in cands]
+    r_bounds = (0.5 * radius_range_m[0], 2.0 * radius_range_m[1])
+    refined = [_robust_refine(p, c, r, radius, tau, min_points, where, r_bounds) for c, r in cands]
     # Pick the candidate with the lowest MSAC cost at the finest noise level found (threshold 2.5 sigma):
     # a wrong sphere through a partial cap plus outliers collects points loosely, the right one tightly.
     t2 = (2.5 * min(s for _, _, s in refined)) ** 2
@@ -389,6 +400,66 @@ def fit_sphere(points: Any, radius: float | None = None, *, inlier_threshold_m: 
     if not (np.isfinite(out.center).all() and np.isfinite([out.radius, out.rms_m, radius_std, center_std]).all()):
         raise EstimationError(f"{where}: fit produced non-finite values")  # pragma: no cover - guarded above
     return out
+
+
+def refine_center(points: Any, center: Any, radius: float, band_m: float = 0.01, min_points: int = 50,
+                  max_shift_m: float | None = None) -> np.ndarray | None:
+    """Re-estimate a sphere's centre (known radius) from a few points, starting at a predicted centre.
+
+    Used per frame by the lighting pass: the ball's depth points of one frame, in that frame's camera
+    coordinates, fix where the ball is relative to the camera far better than the tracked pose does
+    (a 0.3 degree pose error moves the ball's image by ~3 px, turning its normals by ~4 degrees).
+    Robust geometric least squares (soft-L1, radius fixed), first on the points within ``3 band_m`` of
+    the predicted sphere, then within ``band_m`` of the first estimate.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Points in metres (NaN rows ignored), any frame; ``center`` in the same frame.
+    center : (3,) array
+        Predicted centre (metres).
+    radius : float
+        Known radius (metres).
+    band_m : float
+        Only points within this distance of the predicted sphere are used.
+    min_points : int
+        Fewer usable points give None.
+    max_shift_m : float, optional
+        A refined centre farther than this from the prediction is rejected (None); default ``2 band_m``.
+
+    Returns
+    -------
+    (3,) ndarray or None
+        The refined centre, or None when the points do not support a refinement (too few, or the fit
+        moved implausibly far).
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    c0 = np.asarray(center, dtype=np.float64).reshape(3)
+    if not (np.isfinite(c0).all() and np.isfinite(radius) and radius > 0 and band_m > 0):
+        raise AppFusionError(f"refine_center: centre, radius and band must be finite and positive "
+                             f"(got {c0.tolist()}, {radius}, {band_m})")
+    p = p[np.isfinite(p).all(axis=1)]
+    c = c0
+    # Two rounds: a wide band (3x) catches the ball when the prediction is off by up to ~band_m, then the
+    # band proper around the first estimate.
+    for band in (3.0 * band_m, band_m):
+        d = np.abs(np.linalg.norm(p - c, axis=1) - radius)
+        near = d < band
+        q = p[near]
+        if len(q) < max(int(min_points), 5):
+            return None
+        try:
+            _shape_check(q, "refine_center")
+        except EstimationError:
+            return None
+        sigma = float(np.clip(1.4826 * np.median(d[near]), 2e-4, band))
+        c, _, _ = _refine(q, c, radius, radius, sigma)
+        if not np.isfinite(c).all():
+            return None
+    limit = 2.0 * band_m if max_shift_m is None else max_shift_m
+    if np.linalg.norm(c - c0) > limit:
+        return None
+    return c
 
 
 # -- points from depth frames ------------------------------------------------------------------------
