@@ -637,22 +637,30 @@ class OpenNI2Source(Source):
     # -- stream management ---------------------------------------------------------------------
     def _stop_all(self) -> None:
         """Stop every stream, wait until the driver threads have let go, then destroy them."""
-        if not self._streams:
+        self._halt_streams()
+        self._destroy_streams()
+
+    def _halt_streams(self) -> None:
+        """Stop every running stream and wait until no driver thread touches it any more."""
+        if not self._started:
             return
         fps = min((float(m.fps) for m in self._modes.values()), default=30.0) or 30.0
         ni = load_openni2(self.library_dir)
-        for name, s in self._streams.items():
-            if name in self._started:
-                # stopping a stream whose driver thread has not produced its first frame yet
-                # crashes Debian's DummyDevice later: let every started stream deliver one frame
-                with contextlib.suppress(Exception):
-                    ni.wait_for_any_stream([s], 1.0)
-        for s in self._streams.values():
+        for name in self._started:
+            # stopping a stream whose driver thread has not produced its first frame yet
+            # crashes Debian's DummyDevice later: let every started stream deliver one frame
             with contextlib.suppress(Exception):
-                s.stop()
+                ni.wait_for_any_stream([self._streams[name]], 1.0)
+        for name in self._started:
+            with contextlib.suppress(Exception):
+                self._streams[name].stop()
         self._started = set()
         # Debian's drivers keep a stream thread alive for up to a frame period after stop
         time.sleep(max(0.1, 3.0 / fps))
+
+    def _destroy_streams(self) -> None:
+        """Destroy the (stopped) streams."""
+        self._halt_streams()
         for s in self._streams.values():
             with contextlib.suppress(Exception):
                 s.close()
@@ -889,19 +897,28 @@ class OpenNI2Source(Source):
             raise SourceError(f"{path}: cannot record .oni: {_oni_error_text(e)}") from None
         self._recorder = rec
 
-    def stop_oni_recording(self) -> None:
-        """Stop and finalise the ``.oni`` recording (nothing if none is running)."""
+    def stop_oni_recording(self, _restart: bool = True) -> None:
+        """Stop and finalise the ``.oni`` recording (nothing if none is running).
+
+        The streams are stopped while the recorder is destroyed and then restarted: destroying an
+        OpenNI2 recorder while a driver thread hands it a frame deadlocks (seen with Debian's build).
+        """
         rec, self._recorder = self._recorder, None
         if rec is None:
             return
         with contextlib.suppress(Exception):
             rec.stop()
+        running = frozenset(self._streams)
+        self._halt_streams()  # no frame may reach the recorder while it is destroyed ...
         with contextlib.suppress(Exception):
             rec.close()
+        self._destroy_streams()  # ... and it must be destroyed before the streams it holds
+        if _restart and running and self._dev is not None:
+            self._start(running)
 
     # -- reading -------------------------------------------------------------------------------
     def _teardown(self) -> None:
-        self.stop_oni_recording()
+        self.stop_oni_recording(_restart=False)
         self._stop_all()
         if self._dev is not None:
             with contextlib.suppress(Exception):
