@@ -69,7 +69,7 @@ from . import octahedral as oc
 from .brdf import ward_retro
 from .errors import AppFusionError, EstimationError
 from .hbsab import CH_W, CH_WV, CH_WV2, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, HBSAB, half_vector_samples
-from .ward_fit import WardFit, WardFitter
+from .ward_fit import WardFit, WardFitter, one_blas_thread
 
 __all__ = ["BRDFTree", "build_tree", "BRDFCut", "CutResult", "ClusterInfo", "highlight_region",
            "kmeans_hbsab"]
@@ -241,10 +241,11 @@ def _hbsab_features(data: np.ndarray, texel_min_weight: float):
     Wd = np.where(ok, W, 1.0)
     v = np.where(ok, data[CH_WV] / Wd, 0.0)
     var = np.where(ok, np.maximum(data[CH_WV2] / Wd - v * v, 0.0), 0.0)
-    rel = np.where(ok & (np.abs(v) > 0), var / np.maximum(v * v, 1e-300), np.nan)
-    with np.errstate(all="ignore"):
-        c2 = np.nanmedian(np.where(np.isfinite(rel), rel, np.nan), axis=1)
-    c2 = np.where(np.isfinite(c2) & (c2 > 0), c2, 0.25)
+    good = ok & (np.abs(v) > 0)
+    rel = np.sort(np.where(good, var / np.maximum(v * v, 1e-300), np.inf), axis=1)   # row-wise median
+    cnt = good.sum(axis=1)
+    c2 = rel[np.arange(len(rel)), np.maximum(cnt - 1, 0) // 2]
+    c2 = np.where((cnt > 0) & np.isfinite(c2) & (c2 > 0), c2, 0.25)
     vmax = np.max(np.abs(v), axis=1, keepdims=True)
     s2 = (c2[:, None] * v * v + (1e-2 * vmax) ** 2 + 1e-300) / Wd
     omega = np.where(ok, 1.0 / s2, 0.0)
@@ -464,6 +465,13 @@ class BRDFCut:
         Automatic k (module docstring).
     assign_margin : float
         Chi-square margin for assigning unreliable nodes by their HBSAB.
+    leaf_margin : float or None
+        Chi-square margin by which a leaf's own HBSAB must prefer another centre to leave its cut
+        node's cluster (None: no leaf refinement).
+    interior_k, interior_min_fraction
+        The Ward fit of a cluster uses its interior leaves (a leaf whose points and ``interior_k``
+        nearest leaves all carry the cluster's label) when they hold at least
+        ``interior_min_fraction`` of its weight; boundary leaves mix two materials' lobes.
     fit_min_weight : float
         Texel weight threshold of the Ward fits.
     diffuse : {"min", "fit"}
@@ -480,7 +488,8 @@ class BRDFCut:
                  min_coverage: float = 0.5, broad_alpha: float = 0.3, region_energy: float = 0.9,
                  noise_ratio: float = 1.0, split_gain: float = 1.25, assign_margin: float = 4.0,
                  fit_min_weight: float = 1.0, diffuse: str = "fit", dtype=np.float32, seed: int = 0,
-                 size: float | None = None):
+                 size: float | None = None, leaf_margin: float | None = 9.0, interior_k: int = 6,
+                 interior_min_fraction: float = 0.3):
         P, Nn = _check_points(positions, normals)
         self.positions, self.normals = P, Nn
         self.tree = build_tree(P, Nn, min_leaf=min_leaf, size=size)
@@ -502,6 +511,9 @@ class BRDFCut:
         self.noise_ratio = float(noise_ratio)
         self.split_gain = float(split_gain)
         self.assign_margin = float(assign_margin)
+        self.leaf_margin = None if leaf_margin is None else float(leaf_margin)
+        self.interior_k = int(interior_k)
+        self.interior_min_fraction = float(interior_min_fraction)
         self.fit_min_weight = float(fit_min_weight)
         self.diffuse = diffuse
         self.seed = int(seed)
@@ -593,33 +605,36 @@ class BRDFCut:
             self.overrides[np.asarray(point_idx, dtype=np.int64)] = -1
 
     # -- clustering ----------------------------------------------------------------------------
-    def _choose_k(self, X, Om, notes, chi2_by_k):
-        n_rel = len(X)
-        k_hi = min(self.k_max, n_rel)
+    def _choose_k(self, X, Om, chi2_by_k):
+        """Automatic k (module docstring): grow k while the clusters leave more than the noise and one
+        more cluster reduces the chi-square by at least ``split_gain``."""
+        k_hi = min(self.k_max, len(X))
         runs = {}
-        for kk in range(1, k_hi + 1):
-            lab, C, MC, chi2, per = kmeans_hbsab(X, Om, kk, seed=self.seed)
-            dof = float(np.sum(np.maximum(per[:, 1] - 1, 0)))
-            runs[kk] = (lab, C, MC, chi2, dof)
-            chi2_by_k[kk] = (chi2, dof)
-            if len(C) < kk:                                  # no more distinct clusters to find
+
+        def run(kk):
+            if kk not in runs:
+                lab, C, MC, chi2, per = kmeans_hbsab(X, Om, kk, seed=self.seed)
+                dof = float(np.sum(np.maximum(per[:, 1] - 1, 0)))
+                runs[kk] = (lab, C, MC, chi2, dof)
+                chi2_by_k[kk] = (chi2, dof)
+            return runs[kk]
+
+        kk = 1
+        while True:
+            lab, C, MC, chi2, dof = run(kk)
+            if kk >= k_hi or len(C) < kk or chi2 <= self.noise_ratio * max(dof, 1.0):
                 break
-        ks = sorted(runs)
-        chosen = ks[-1]
-        for i, kk in enumerate(ks):
-            chi2, dof = runs[kk][3], runs[kk][4]
-            if chi2 <= self.noise_ratio * max(dof, 1.0):
-                chosen = kk
+            nxt = run(kk + 1)
+            if len(nxt[1]) <= kk or not (nxt[3] <= 0 or chi2 / nxt[3] >= self.split_gain):
                 break
-            if i + 1 < len(ks):
-                nxt = runs[ks[i + 1]][3]
-                if nxt <= 0 or chi2 / nxt >= self.split_gain:
-                    continue
-                chosen = kk
-                break
-        return runs[chosen][:3]
+            kk += 1
+        return runs[kk][:3]
 
     def result(self, k: int | None = None, fit: bool = True) -> CutResult:
+        with one_blas_thread():
+            return self._result(k, fit)
+
+    def _result(self, k, fit) -> CutResult:
         """Cut, cluster, label and fit (paper §5.2); see the module docstring.
 
         Parameters
@@ -643,6 +658,8 @@ class BRDFCut:
         sums = np.add.reduceat(self.leaves.data[[CH_W, CH_WV, CH_WV2]], t.leaf_lo[nodes], axis=1,
                                dtype=np.float64)
         X, Om, _ = _hbsab_features(sums, self.texel_min_weight)
+        cols = np.flatnonzero(Om.any(axis=0))                 # texels some node holds
+        X, Om = X[:, cols], Om[:, cols]
         node_label = np.zeros(len(nodes), np.int64)
         chi2_by_k: dict = {}
         n_rel = int(rel.sum())
@@ -653,7 +670,7 @@ class BRDFCut:
         else:
             Xr, Omr = X[rel], Om[rel]
             if k is None:
-                lab, C, MC = self._choose_k(Xr, Omr, notes, chi2_by_k)
+                lab, C, MC = self._choose_k(Xr, Omr, chi2_by_k)
             else:
                 if k > n_rel:
                     notes.append(f"k = {k} requested but only {n_rel} reliable cut node(s): k reduced")
@@ -665,8 +682,10 @@ class BRDFCut:
             unrel = np.flatnonzero(~rel)
             if len(unrel):
                 node_label[unrel] = self._assign_unreliable(nodes, rel, unrel, X, Om, C, MC, lab)
-        # per-leaf labels -> per-point labels
+        # per-leaf labels (refined where a leaf's own data decide), then per-point labels
         leaf_label = np.repeat(node_label, t.leaf_hi[nodes] - t.leaf_lo[nodes])
+        if n_rel and k_eff > 1 and self.leaf_margin is not None:
+            leaf_label = self._refine_leaves(leaf_label, cols, C, MC)
         labels = leaf_label[t.point_leaf].astype(np.int32)
         labels = self._stabilise(labels, k_eff)
         painted = self.overrides >= 0
@@ -677,6 +696,21 @@ class BRDFCut:
         self._prev_labels = labels.copy()
         return CutResult(labels=labels, clusters=clusters, k=k_out, k_auto=k is None, cut_nodes=nodes,
                          cut_reliable=rel, chi2_by_k=chi2_by_k, notes=notes)
+
+    def _refine_leaves(self, leaf_label, cols, C, MC):
+        """Move a leaf to another centre when its own HBSAB is closer to it by ``leaf_margin`` in
+        chi-square (the cut's nodes straddle material boundaries; their leaves need not)."""
+        d = self.leaves.data[[CH_W, CH_WV, CH_WV2]][:, :, cols].astype(np.float64)
+        XL, OmL, _ = _hbsab_features(d, self.texel_min_weight)
+        chi2, nc, _ = _chi2_matrix(XL, OmL, C, MC)
+        chi2 = np.where(nc > 0, chi2, np.inf)
+        idx = np.arange(len(leaf_label))
+        best = np.argmin(chi2, axis=1)
+        cur = chi2[idx, leaf_label]
+        switch = np.isfinite(cur) & (cur - chi2[idx, best] >= self.leaf_margin)
+        out = leaf_label.copy()
+        out[switch] = best[switch]
+        return out
 
     def _assign_unreliable(self, nodes, rel, unrel, X, Om, C, MC, rel_labels):
         chi2, nc, _ = _chi2_matrix(X[unrel], Om[unrel], C, MC)
@@ -712,6 +746,23 @@ class BRDFCut:
         mapping[r] = c
         return mapping[labels].astype(np.int32)
 
+    def _interior_leaves(self, labels: np.ndarray) -> np.ndarray:
+        """(n_leaves,) bool: leaves whose points share one label, as do their ``interior_k`` nearest
+        leaves in ``(position / size, normal)``. Leaves at a material boundary mix two lobes; the
+        clusters' Ward fits leave them out (labels are unaffected)."""
+        t = self.tree
+        lo = np.minimum.reduceat(labels[t.order], t.leaf_start[:-1])
+        hi = np.maximum.reduceat(labels[t.order], t.leaf_start[:-1])
+        pure = lo == hi
+        if self.interior_k <= 0 or t.n_leaves <= 1:
+            return pure
+        cent = self._leaf_feat_sum / self._leaf_count[:, None]
+        kk = min(self.interior_k + 1, t.n_leaves)
+        _, nb = cKDTree(cent).query(cent, k=kk)
+        nb = np.asarray(nb).reshape(t.n_leaves, -1)
+        same = (lo[nb] == lo[:, None]) & pure[nb]
+        return pure & same.all(axis=1)
+
     def _clusters(self, labels, k, fit) -> list[ClusterInfo]:
         t = self.tree
         F = np.zeros((k, t.n_leaves))
@@ -719,15 +770,21 @@ class BRDFCut:
         leaf_area = np.bincount(t.point_leaf, self.areas, t.n_leaves)
         Fn = F / np.where(leaf_area > 0, leaf_area, 1.0)[None]
         merged = self.leaves.merge(Fn)
+        Fi = Fn * self._interior_leaves(labels)[None]
+        inner = self.leaves.merge(Fi) if fit else None
         out = []
         counts = np.bincount(labels, minlength=k)
         for c in range(k):
             hb = merged[c]
             wf, status = None, "not fitted"
             if fit:
+                # fit the interior leaves when they hold enough of the cluster's data
+                use = inner[c]
+                if use.total_weight()[0] < self.interior_min_fraction * hb.total_weight()[0]:
+                    use = hb
                 fitter = self._fitters.setdefault(c, WardFitter(self.fit_min_weight, self.diffuse))
                 try:
-                    wf = fitter.fit(hb)
+                    wf = fitter.fit(use)
                     status = "fitted"
                 except EstimationError as e:
                     status = f"insufficient data: {e}"

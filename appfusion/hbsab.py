@@ -324,7 +324,7 @@ class HBSAB:
 
     # -- updates -------------------------------------------------------------------------
     def update(self, buffer, wi: np.ndarray, wo: np.ndarray, value: np.ndarray,
-               weight: np.ndarray | None = None) -> int:
+               weight: np.ndarray | None = None, saturated: np.ndarray | None = None) -> int:
         """Add samples by Eq. 3 (vectorised; repeated texels are summed).
 
         Parameters
@@ -337,6 +337,8 @@ class HBSAB:
             IR reflectance samples (1/sr).
         weight : (m,) array, optional
             Default ``w_o . n``.
+        saturated : (m,) bool array, optional
+            Samples clipped by the sensor (``WSAT`` channel).
 
         Returns
         -------
@@ -348,7 +350,7 @@ class HBSAB:
         if buf.size and (buf.min() < 0 or buf.max() >= self.n_buffers):
             raise AppFusionError(f"HBSAB update: buffer index out of range 0..{self.n_buffers - 1} "
                                  f"(got {int(buf.min())}..{int(buf.max())})")
-        s = half_vector_samples(wi, wo, value, self.n, self.max_angle_deg, weight)
+        s = half_vector_samples(wi, wo, value, self.n, self.max_angle_deg, weight, saturated=saturated)
         self.add(buf[s.keep] * (self.n * self.n) + s.texel, s.channels)
         return len(s.keep)
 

@@ -29,12 +29,17 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def _dot(a, b):
+    a, b = np.broadcast_arrays(a, b)
+    return np.einsum("...i,...i->...", a, b)
+
+
 def _ward(alpha, wi, wo, n):
     """Isotropic Ward (1992) lobe, independent implementation: directions (..., 3), normal (..., 3)."""
-    ci = np.sum(wi * n, -1)
-    co = np.sum(wo * n, -1)
-    h = _unit(wi + wo)
-    ch = np.clip(np.sum(h * n, -1), 1e-9, 1.0)
+    ci = _dot(wi, n)
+    co = _dot(wo, n)
+    h = wi + wo
+    ch = np.clip(_dot(h, n) / np.sqrt(_dot(h, h)), 1e-9, 1.0)
     t2 = 1.0 / (ch * ch) - 1.0
     ok = (ci > 0) & (co > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -107,16 +112,21 @@ def protocol_alpha_errors(alphas=(0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.75), n_p
     dict
         ``alpha -> (fitted - alpha) / alpha``.
     """
-    from .hbsab import HBSAB
+    from .hbsab import CH_W, CH_WV, CH_WV2, HBSAB, half_vector_samples
     from .ward_fit import fit_ward
 
     wi, wo = protocol_pairs(n_pairs, seed=seed) if pairs is None else pairs
     z = np.array([0.0, 0.0, 1.0])
+    # the half-vector geometry is the same for every alpha: compute it once, swap the values
+    s = half_vector_samples(wi, wo, np.zeros(len(wi)), hbsab_n)
+    wi, wo = wi[s.keep], wo[s.keep]
     out = {}
     for a in alphas:
-        hb = HBSAB(1, hbsab_n)
         f = rho_d / np.pi + rho_s * _ward(a, wi, wo, z)
-        hb.update(0, wi, wo, f)
+        s.channels[CH_WV] = s.channels[CH_W] * f
+        s.channels[CH_WV2] = s.channels[CH_WV] * f
+        hb = HBSAB(1, hbsab_n)
+        hb.add(s.texel, s.channels)
         out[float(a)] = fit_ward(hb).alpha / a - 1.0
     return out
 
@@ -150,8 +160,14 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 
 def orbit_poses(center, distance: float, elevations_deg=(-30, -10, 10, 30, 50, 70), per_ring: int = 20,
-                seed: int = 0, jitter_deg: float = 4.0) -> list[np.ndarray]:
-    """Camera poses on rings around ``center`` (azimuths jittered), all looking at it."""
+                seed: int = 0, jitter_deg: float = 4.0, aim_jitter: float = 0.05,
+                distance_jitter: float = 0.1) -> list[np.ndarray]:
+    """Camera poses on rings around ``center`` looking near it, like a hand-held scan.
+
+    Azimuth and elevation are jittered by ``jitter_deg``, the distance by ``distance_jitter`` (relative)
+    and the aim point by up to ``aim_jitter`` metres, so that the object moves about the image (and a
+    highlight is lit by different parts of the emitter's pattern from frame to frame).
+    """
     rng = np.random.default_rng(seed)
     c = np.asarray(center, dtype=float)
     out = []
@@ -159,8 +175,9 @@ def orbit_poses(center, distance: float, elevations_deg=(-30, -10, 10, 30, 50, 7
         for j in range(per_ring):
             az = np.radians(360.0 * (j + 0.5 * (k % 2)) / per_ring + rng.uniform(-jitter_deg, jitter_deg))
             e = np.radians(el + rng.uniform(-jitter_deg, jitter_deg))
-            eye = c + distance * np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
-            out.append(look_at(eye, c))
+            dist = distance * (1 + rng.uniform(-distance_jitter, distance_jitter))
+            eye = c + dist * np.array([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)])
+            out.append(look_at(eye, c + rng.uniform(-aim_jitter, aim_jitter, 3)))
     return out
 
 
@@ -237,35 +254,49 @@ class SphereIRScanner:
         """Depth (metres, NaN off the sphere or in the emitter's shadow) and raw IR of one view."""
         K = self.intrinsics
         H, W = K.shape
-        rays = K.rays().reshape(-1, 3).astype(np.float64)
         R, t = pose[:3, :3], pose[:3, 3]
         oc = R.T @ (self.center - t)                       # sphere centre in the camera frame
-        b = rays @ oc
-        rr = np.einsum("ij,ij->i", rays, rays)
-        disc = b * b - rr * (oc @ oc - self.radius ** 2)
-        hit = disc > 0
-        s = np.where(hit, (b - np.sqrt(np.where(hit, disc, 0.0))) / rr, np.nan)
-        P = rays * s[:, None]                               # camera frame; z = s
-        nrm = _unit(np.where(hit[:, None], P - oc, 1.0))
-        e = np.asarray(self.emitter, dtype=float)
-        L = e - P
-        d = np.linalg.norm(L, axis=1)
-        wi = L / d[:, None]
-        wo = _unit(-P)
-        ci = np.sum(wi * nrm, 1)
-        lit = hit & (ci > 0) & (np.sum(wo * nrm, 1) > 0)
-        idx = np.flatnonzero(lit)
-        ir = self.b0 + self._rng.normal(0, self.noise, H * W)
-        mat = np.asarray(self.material_of((R @ nrm[idx].T).T))
-        rho_d = np.array([m.rho_d for m in self.materials])[mat]
-        rho_s = np.array([m.rho_s for m in self.materials])[mat]
-        alpha = np.array([m.alpha for m in self.materials])[mat]
-        fr = rho_d / np.pi + rho_s * _ward(alpha, wi[idx], wo[idx], nrm[idx])
-        x = (self._t(P[idx] - e) + self.shift) / (self.scale * d[idx])
-        ir[idx] += self.gain * (x * ci[idx] * fr) ** self.gamma
-        ir = np.clip(np.round(ir), 0, 1023).astype(np.float32).reshape(H, W)
-        depth = np.where(lit, P[:, 2], np.nan).astype(np.float32).reshape(H, W)
-        return ir, depth
+        ir = self.b0 + self._rng.normal(0, self.noise, (H, W))
+        depth = np.full((H, W), np.nan)
+        # only the pixels of the sphere's bounding square (the sphere is in front of the camera)
+        r0, r1, c0, c1 = 0, H, 0, W
+        if oc[2] > self.radius * 1.01:
+            half = self.radius / np.sqrt(oc[2] ** 2 - self.radius ** 2) * 1.05 + 0.02
+            cu, cv = K.fx * oc[0] / oc[2] + K.cx, K.fy * oc[1] / oc[2] + K.cy
+            hu, hv = half * K.fx * (1 + abs(oc[0]) / oc[2]), half * K.fy * (1 + abs(oc[1]) / oc[2])
+            c0, c1 = max(int(cu - hu) - 2, 0), min(int(cu + hu) + 3, W)
+            r0, r1 = max(int(cv - hv) - 2, 0), min(int(cv + hv) + 3, H)
+        if r0 < r1 and c0 < c1:
+            uu, vv = np.meshgrid(np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64))
+            rays = np.stack([(uu - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones_like(uu)], -1).reshape(-1, 3)
+            b = rays @ oc
+            rr = np.einsum("ij,ij->i", rays, rays)
+            disc = b * b - rr * (oc @ oc - self.radius ** 2)
+            hit = disc > 0
+            s = np.where(hit, (b - np.sqrt(np.where(hit, disc, 0.0))) / rr, np.nan)
+            P = rays * s[:, None]                               # camera frame; z = s
+            nrm = _unit(np.where(hit[:, None], P - oc, 1.0))
+            e = np.asarray(self.emitter, dtype=float)
+            L = e - P
+            d = np.linalg.norm(L, axis=1)
+            wi = L / d[:, None]
+            wo = _unit(np.where(hit[:, None], -P, 1.0))
+            ci = np.sum(wi * nrm, 1)
+            lit = hit & (ci > 0) & (np.sum(wo * nrm, 1) > 0)
+            idx = np.flatnonzero(lit)
+            mat = np.asarray(self.material_of((R @ nrm[idx].T).T))
+            rho_d = np.array([m.rho_d for m in self.materials])[mat]
+            rho_s = np.array([m.rho_s for m in self.materials])[mat]
+            alpha = np.array([m.alpha for m in self.materials])[mat]
+            fr = rho_d / np.pi + rho_s * _ward(alpha, wi[idx], wo[idx], nrm[idx])
+            x = (self._t(P[idx] - e) + self.shift) / (self.scale * d[idx])
+            sub = ir[r0:r1, c0:c1].reshape(-1)
+            sub[idx] += self.gain * (x * ci[idx] * fr) ** self.gamma
+            ir[r0:r1, c0:c1] = sub.reshape(r1 - r0, c1 - c0)
+            dsub = np.where(lit, P[:, 2], np.nan)
+            depth[r0:r1, c0:c1] = dsub.reshape(r1 - r0, c1 - c0)
+        ir = np.clip(np.round(ir), 0, 1023).astype(np.float32)
+        return ir, depth.astype(np.float32)
 
 
 def two_material_sphere(seed: int = 0, n_points: int = 20000, radius: float = 0.12,

@@ -1,0 +1,191 @@
+"""BRDF cut (paper §5.2) and the IR pass glue: tree, reliability, cut, k-means, labels, scans."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from appfusion import ir_synth as S
+from appfusion.brdf_cut import BRDFCut, build_tree, highlight_region, kmeans_hbsab
+from appfusion.errors import AppFusionError
+from appfusion.hbsab import CH_W
+from appfusion.ir_pass import IRPass
+
+
+def _accuracy(labels, truth, areas=None):
+    """Area-weighted fraction of correctly labelled points under the best label permutation."""
+    from scipy.optimize import linear_sum_assignment
+
+    a = np.ones(len(labels)) if areas is None else areas
+    k = max(labels.max(), truth.max()) + 1
+    M = np.zeros((k, k))
+    np.add.at(M, (labels, truth), a)
+    r, c = linear_sum_assignment(-M)
+    return M[r, c].sum() / a.sum(), dict(zip(r, c))
+
+
+# -- tree -----------------------------------------------------------------------------------------
+
+def test_tree_partitions_points_depth_first():
+    P, N = S.sphere_points(5000, radius=0.1)
+    t = build_tree(P, N, min_leaf=40)
+    sizes = np.diff(t.leaf_start)
+    assert sizes.min() >= 40 and sizes.max() < 80
+    assert sorted(t.order.tolist()) == list(range(5000))
+    assert np.all(t.point_leaf[t.order] == np.repeat(np.arange(t.n_leaves), sizes))
+    for node in range(t.n_nodes):                     # a node's leaves = its children's, contiguous
+        L, R = t.left[node], t.right[node]
+        if L >= 0:
+            assert t.leaf_lo[node] == t.leaf_lo[L] and t.leaf_hi[L] == t.leaf_lo[R]
+            assert t.leaf_hi[R] == t.leaf_hi[node] and t.parent[L] == node == t.parent[R]
+            assert len(t.node_points(node)) == len(t.node_points(L)) + len(t.node_points(R))
+        else:
+            assert t.leaf_hi[node] - t.leaf_lo[node] == 1
+    # leaves are compact in (position / size, normal): a leaf spans a small part of the sphere
+    spread = [np.ptp(N[t.node_points(t.leaf_node[j])], axis=0).max() for j in range(t.n_leaves)]
+    assert np.median(spread) < 0.5
+    one = build_tree(P[:10], N[:10], min_leaf=64)      # fewer points than a leaf: the root
+    assert one.n_nodes == 1 and one.n_leaves == 1
+
+
+def test_tree_input_errors():
+    P, N = S.sphere_points(100)
+    with pytest.raises(AppFusionError, match="normals of shape"):
+        build_tree(P, N[:5])
+    N2 = N.copy()
+    N2[7] = 0
+    with pytest.raises(AppFusionError, match="point 7 has a zero normal"):
+        build_tree(P, N2)
+    P2 = P.copy()
+    P2[3, 1] = np.nan
+    with pytest.raises(AppFusionError, match="point 3"):
+        build_tree(P2, N)
+
+
+# -- reliability and the cut ------------------------------------------------------------------------
+
+def test_highlight_region_and_reliability():
+    reg = highlight_region(32)
+    d = np.array([0.0, 0.0, 1.0])
+    from appfusion import octahedral as oc
+
+    th = np.degrees(np.arccos(oc.hemi_directions(32).reshape(-1, 3) @ d))
+    assert th[reg > 0].max() < 35 and th[reg > 0].min() < 3      # a disc around the normal
+    P, N = S.sphere_points(2000, radius=0.1)
+    cut = BRDFCut(P, N, n=32, min_leaf=50, min_total_weight=100)
+    rel, total, cov = cut.node_reliability()
+    assert not rel.any() and np.all(total == 0)
+    assert cut.cut().tolist() == [0]                  # nothing reliable: the cut is the root
+    # samples covering the whole highlight region in leaf 0's points only
+    pts = cut.tree.node_points(cut.tree.leaf_node[0])
+    h = oc.hemi_directions(32).reshape(-1, 3)[reg > 0]
+    h = np.repeat(h, 3, axis=0)
+    cut.add_samples(np.resize(pts, len(h)), h, h, np.ones(len(h)))
+    rel, total, cov = cut.node_reliability()
+    assert cov[cut.tree.leaf_node[0]] == pytest.approx(1.0)
+    assert rel[0] and rel[cut.tree.leaf_node[0]]
+    nodes = cut.cut(rel)
+    lo, hi = cut.tree.leaf_lo[nodes], cut.tree.leaf_hi[nodes]
+    assert lo[0] == 0 and np.all(lo[1:] == hi[:-1]) and hi[-1] == cut.tree.n_leaves   # a partition
+    assert cut.tree.leaf_node[0] in nodes             # refined down to the reliable leaf
+
+
+def test_kmeans_offset_free_distance():
+    """Rows that differ by a constant (their diffuse part) are one cluster; a different lobe is not."""
+    rng = np.random.default_rng(0)
+    T = 200
+    base = np.exp(-np.linspace(0, 5, T))
+    other = np.exp(-np.linspace(0, 15, T))
+    X = np.vstack([base + rng.uniform(0, 1, (30, 1)), other + rng.uniform(0, 1, (20, 1))])
+    X += rng.normal(0, 0.01, X.shape)
+    Om = np.full(X.shape, 1e4)
+    Om[rng.random(X.shape) < 0.3] = 0                # missing texels
+    lab, C, MC, chi2, per = kmeans_hbsab(X, Om, 2, seed=1)
+    assert len(set(lab[:30])) == 1 and len(set(lab[30:])) == 1 and lab[0] != lab[30]
+    lab1, *_ = kmeans_hbsab(X[:30], Om[:30], 3, seed=1)
+    assert len(lab1) == 30
+
+
+# -- scans through the IR pass ----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def two_material_scan():
+    sc, P, N, truth = S.two_material_sphere(seed=3, n_points=20000)
+    ip = IRPass(P, N, sc.profile(), min_leaf=32)
+    poses = S.orbit_poses(sc.center, 0.5, per_ring=16, seed=3)
+    S.scan(ip, sc, poses)
+    return sc, ip, truth, poses
+
+
+def test_two_materials_labels_and_alphas(two_material_scan):
+    sc, ip, truth, _ = two_material_scan
+    res = ip.result()
+    assert res.k_auto and res.k == 2, res.chi2_by_k
+    acc, mapping = _accuracy(res.labels, truth)
+    assert acc >= 0.95, acc
+    for lab, mat in mapping.items():
+        a_true = sc.materials[mat].alpha
+        fit = res.clusters[lab].fit
+        assert fit is not None and abs(fit.alpha / a_true - 1) <= 0.05, (a_true, fit)
+        assert 0 < fit.alpha_sigma < 0.05 * a_true
+        assert abs(res.clusters[lab].rho_d_ir - sc.materials[mat].rho_d) < 0.05
+    np.testing.assert_array_equal(res.alphas(), [c.fit.alpha for c in res.clusters])
+    assert res.fitted.all() and np.all(np.isfinite(res.alpha_sigmas()))
+    # a forced k gives the same partition
+    res2 = ip.result(k=2)
+    assert _accuracy(res2.labels, truth)[0] >= 0.95
+
+
+def test_painted_labels_persist_and_labels_are_stable(two_material_scan):
+    sc, ip, truth, poses = two_material_scan
+    r1 = ip.result()
+    painted = np.arange(0, 20000, 97)
+    ip.set_labels(painted, 1)
+    try:
+        r2 = ip.result()
+        assert np.all(r2.labels[painted] == 1)
+        unpainted = np.setdiff1d(np.arange(20000), painted)
+        assert np.array_equal(r1.labels[unpainted], r2.labels[unpainted])     # same numbering
+        ip.set_labels([5], 4)                          # a new cluster, painted only
+        r3 = ip.result()
+        assert r3.k == 5 and r3.labels[5] == 4 and r3.clusters[4].n_points == 1
+        assert all(np.isfinite(c.alpha) for c in r3.clusters if c.fit is not None)
+        with pytest.raises(AppFusionError, match="painted"):
+            ip.set_labels([1], -2)
+    finally:
+        ip.cut.clear_labels()
+    assert np.array_equal(ip.result().labels, r1.labels)
+
+
+def test_state_size_is_independent_of_frames(two_material_scan):
+    sc, ip, truth, poses = two_material_scan
+    a = IRPass(ip.cut.positions, ip.cut.normals, sc.profile(), min_leaf=32)
+    S.scan(a, sc, poses[:3])
+    b = IRPass(ip.cut.positions, ip.cut.normals, sc.profile(), min_leaf=32)
+    S.scan(b, sc, poses[:3] * 10)
+    assert b.stats["used"] == pytest.approx(10 * a.stats["used"], rel=0.01)
+    assert a.nbytes == b.nbytes
+    assert b.cut.leaves.data[CH_W].sum() == pytest.approx(10 * a.cut.leaves.data[CH_W].sum(), rel=1e-3)
+
+
+def test_one_material_sphere_gives_one_cluster():
+    sc, P, N, truth = S.two_material_sphere(seed=5, n_points=12000, one_material=True)
+    ip = IRPass(P, N, sc.profile(), min_leaf=32)
+    S.scan(ip, sc, S.orbit_poses(sc.center, 0.5, per_ring=12, seed=5))
+    res = ip.result()
+    assert res.k == 1 and res.k_auto, res.chi2_by_k
+    assert np.all(res.labels == 0)
+    assert abs(res.clusters[0].alpha / sc.materials[0].alpha - 1) < 0.05
+
+
+def test_ir_pass_input_errors():
+    sc, P, N, truth = S.two_material_sphere(seed=5, n_points=500, one_material=True)
+    ip = IRPass(P, N, sc.profile(), min_leaf=32)
+    K = sc.intrinsics
+    with pytest.raises(AppFusionError, match="same size"):
+        ip.add_frame(np.zeros((10, 10)), np.zeros(K.shape), K, np.eye(4))
+    with pytest.raises(AppFusionError, match="pose"):
+        ip.add_frame(np.zeros(K.shape), np.zeros(K.shape), K, np.eye(3))
+    with pytest.raises(AppFusionError, match="point indices"):
+        ip.add_samples(np.zeros(3, int), np.zeros((2, 3)), (0, 0, 1), (0, 0, 1), np.zeros(3))
+    assert ip.add_frame(np.zeros(K.shape), np.full(K.shape, np.nan), K, np.eye(4)) == 0
