@@ -378,23 +378,33 @@ class EnvMap:
         return _imwrite(Path(path), self.preview(**kwargs)[..., ::-1])
 
 
-def filling_strip(maps: list[tuple[str, "EnvMap"]], exposure: float | None = None, scale: int = 1) -> np.ndarray:
-    """Previews of maps side by side (e.g. after 1, 4, 16, all views), one exposure, uint8 RGB.
+def filling_strip(maps: list[tuple[str, "EnvMap"]], exposure: float | None = None, scale: int = 1,
+                  columns: int | None = None) -> np.ndarray:
+    """Previews of maps in a grid (e.g. after 1, 4, 16, all views), one exposure, uint8 RGB.
 
-    Each panel is labelled with its text and measured solid-angle coverage.
+    Each panel is labelled with its text and measured solid-angle coverage; ``columns`` panels per row
+    (default all in one row).
     """
     if not maps:
         raise AppFusionError("filling_strip: no maps given")
     if exposure is None:
         exposure = maps[-1][1].auto_exposure()
-    panels = []
-    for text, m in maps:
-        p = m.preview(scale=scale, exposure=exposure, label=f"{text}  {100 * m.coverage_fraction():.0f}% seen")
-        panels.append(p)
-        panels.append(np.full((p.shape[0], 6, 3), 255, np.uint8))
+    panels = [m.preview(scale=scale, exposure=exposure, label=f"{text}  {100 * m.coverage_fraction():.0f}% seen")
+              for text, m in maps]
     h = max(p.shape[0] for p in panels)
-    panels = [np.pad(p, ((0, h - p.shape[0]), (0, 0), (0, 0)), constant_values=255) for p in panels[:-1]]
-    return np.concatenate(panels, axis=1)
+    w = max(p.shape[1] for p in panels)
+    panels = [np.pad(p, ((0, h - p.shape[0]), (0, w - p.shape[1]), (0, 0)), constant_values=255) for p in panels]
+    cols = len(panels) if not columns else max(1, int(columns))
+    blank = np.full_like(panels[0], 255)
+    rows = []
+    for r in range(0, len(panels), cols):
+        row = panels[r:r + cols] + [blank] * (cols - len(panels[r:r + cols]) if r else 0)
+        gap = np.full((h, 6, 3), 255, np.uint8)
+        rows.append(np.concatenate([x for p in row for x in (p, gap)][:-1], axis=1))
+    out = []
+    for r in rows:
+        out += [r, np.full((6, rows[0].shape[1], 3), 255, np.uint8)]
+    return np.concatenate(out[:-1], axis=0)
 
 
 # -- the accumulator ---------------------------------------------------------------------------------

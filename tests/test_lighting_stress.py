@@ -196,3 +196,21 @@ def test_random_cameras_never_corrupt_the_map(dist, az, el, look, s):
     em = acc.envmap()
     assert n >= 0 and np.isfinite(em.radiance).all() and np.isfinite(em.weight).all()
     assert (em.radiance[em.coverage] >= 0).all() and (em.radiance <= 2).all()
+
+
+def test_bench_stage_reports_its_metrics(monkeypatch):
+    """The bench stage's own generator (a different environment, ball and orbit) agrees."""
+    from types import SimpleNamespace
+
+    from appfusion.bench import METRICS
+    from appfusion.bench.stages import lighting
+
+    res = lighting.run_scene(32, 6, 2, seed=3)
+    assert res["envmap_median_rel_err"] < 0.05 and res["sphere_center_err_mm"] < 2.0
+    assert res["energy_rel_err"] < 0.03 and res["coverage"] > 0.95
+    real = lighting.run_scene
+    monkeypatch.setattr(lighting, "run_scene", lambda n, k, d, seed=0: real(32, 4, 2, seed))  # keep it short
+    ctx = SimpleNamespace(quick=True, seed=0, extra={})
+    got = lighting.run(ctx)
+    assert set(got) == {"envmap_median_rel_err", "sphere_center_err_mm"} and set(got) <= set(METRICS)
+    assert all(np.isfinite(v) for v in got.values()) and "generator" in ctx.extra["lighting"]["source"]
