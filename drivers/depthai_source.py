@@ -732,8 +732,12 @@ class DepthAISource(Source):
         Calibration to use instead of the device's (``eepromToJsonFile`` format for paths).
     emitter_position_m : 3 floats, optional
         IR illuminator position in the depth camera frame (default: nominal OAK-D Pro).
-    timeout_s : float
-        Longest silence while streaming before :class:`~appfusion.errors.DeviceError`.
+    timeout_s, first_frame_timeout_s : float
+        Longest silence while streaming / before the first frame before
+        :class:`~appfusion.errors.DeviceError` (live sources only).
+    live : bool, optional
+        Treat silence and the end of the pipeline as a lost device (default: True for a device,
+        False for replays and host graphs, which simply end).
     **options
         Fields of :class:`DepthAIConfig` (``fps``, ``illumination``, ``mono_size``, ...).
     """
@@ -743,7 +747,7 @@ class DepthAISource(Source):
                  record_dir: str | os.PathLike | None = None,
                  build_graph: Callable[[Any], dict[str, Any]] | None = None, calibration: Any = None,
                  emitter_position_m: Iterable[float] | None = None, timeout_s: float = 3.0,
-                 first_frame_timeout_s: float = 10.0, **options: Any):
+                 first_frame_timeout_s: float = 10.0, live: bool | None = None, **options: Any):
         super().__init__()
         base = config.to_json() if config is not None else {}
         if replay_dir is not None and config is None:
@@ -769,6 +773,8 @@ class DepthAISource(Source):
         self.timeout_s = float(timeout_s)
         self.first_frame_timeout_s = float(first_frame_timeout_s)
         self.host_only = build_graph is not None or replay_dir is not None
+        #: silence longer than ``timeout_s``, or the pipeline ending, means the device was lost
+        self.live = (not self.host_only) if live is None else bool(live)
         self.name = ("depthai-replay:" + str(replay_dir)) if replay_dir is not None else \
             ("depthai:host-graph" if build_graph is not None else f"depthai:{device_id or 'any'}")
         if self.replay_dir is not None and not self.replay_dir.is_dir():
@@ -1036,7 +1042,7 @@ class DepthAISource(Source):
                 item = q.get(timeout=0.1)
             except queue.Empty:
                 limit = self.timeout_s if got_any else self.first_frame_timeout_s
-                if not self.host_only and time.monotonic() - last > limit:
+                if self.live and time.monotonic() - last > limit:
                     for fr in asm.flush():
                         yield self._tag(fr)
                     raise DeviceError(f"{self.name}: no frame for {limit:g} s after {asm.stats['frames']} frames "
@@ -1062,7 +1068,7 @@ class DepthAISource(Source):
             yield self._tag(fr)
         if error is not None:
             raise SourceError(f"{self.name}: bad message after {asm.stats['frames']} frames: {error}")
-        if not self.host_only and not self._stopping:
+        if self.live and not self._stopping:
             raise DeviceError(f"{self.name}: the device stopped streaming after {asm.stats['frames']} frames "
                               f"(unplugged?)")
 
