@@ -506,7 +506,9 @@ class EnvMapAccumulator:
         For every pixel whose ray meets the sphere (analytic ray-sphere intersection), with ``n`` the
         sphere normal there and ``w_o`` the direction back to the camera, the pixel's radiance divided by
         ``rho_mirror`` is added to the texel of the reflected direction ``r = 2 (w_o . n) n - w_o`` with
-        weight ``w_o . n`` (skipped below ``min_cos``). Each pixel is split into ``s x s`` sub-rays.
+        weight ``w_o . n`` (skipped below ``min_cos``, and within ``exclude_viewer_deg`` of the direction
+        to the camera). Each pixel is split into ``s x s`` sub-rays that carry its value, each with weight
+        ``w_o . n / s^2``, so that the pixel's footprint on the map is covered.
 
         Parameters
         ----------
@@ -545,9 +547,9 @@ class EnvMapAccumulator:
         T = np.asarray(pose_rgb, dtype=np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise AppFusionError("lighting pass: RGB pose must be a finite 4x4 camera-to-world matrix")
-        c = np.asarray(center, dtype=np.float64).reshape(3)
+        c = np.asarray(center, dtype=np.float64)
         radius = float(radius)
-        if not (np.isfinite(c).all() and np.isfinite(radius) and radius > 0):
+        if c.shape != (3,) or not (np.isfinite(c).all() and np.isfinite(radius) and radius > 0):
             raise AppFusionError(f"lighting pass: sphere centre/radius must be finite, radius > 0 "
                                  f"(got {c.tolist()}, {radius})")
         Rw = T[:3, :3]

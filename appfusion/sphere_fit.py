@@ -5,19 +5,23 @@ The paper scans the mirror ball with KinectFusion and, because a mirror returns 
 object/background geometry separation". This module does that robustly:
 
 1. validation (finite points, plausible units, not coincident / collinear / coplanar);
-2. RANSAC over minimal 4-point spheres (vectorised, MSAC cost) for an outlier-free start;
+2. RANSAC over minimal 4-point spheres (vectorised, MSAC cost) for outlier-free starts;
 3. geometric least squares ``r_i = |p_i - c| - R`` with a robust ``soft_l1`` loss
-   (:func:`scipy.optimize.least_squares`), twice, each time on the points near the current sphere;
+   (:func:`scipy.optimize.least_squares`), a few rounds on the points within a band around the current
+   sphere that shrinks to 3 sigma of the noise; the best of the refined candidates wins;
 4. checks that the answer is determined: the radius must lie in a plausible range, enough points must
-   lie on the shell, the residuals of those points must be concentrated near zero (a cloud of outliers
-   is not), and the radius (when it is estimated) must be determined by the patch's curvature
-   (its standard error from the Gauss-Newton covariance, and the cap's sagitta against the noise).
+   lie on the shell, the shell must be much denser than its surroundings (a cloud of outliers is not),
+   the scatter must be small against the radius, and the radius (when it is estimated) must be
+   determined by the patch's curvature (its standard error from the Gauss-Newton covariance, and the
+   cap's sagitta against the noise).
 
 Anything that fails raises :class:`~appfusion.errors.EstimationError` naming the reason; the result
 never contains NaN.
 
 Points can come from a fused mesh (:func:`fit_sphere`) or straight from depth frames cropped to the
 object box (:func:`points_from_depth`, :class:`PointReservoir`, :func:`fit_sphere_from_depth`).
+:func:`refine_center` re-locates a ball of known radius in a single frame's points (used per frame by
+the lighting pass to cancel tracking error).
 """
 
 from __future__ import annotations
@@ -266,7 +270,8 @@ def _robust_refine(p: np.ndarray, c: np.ndarray, r: float, radius: float | None,
 def fit_sphere(points: Any, radius: float | None = None, *, inlier_threshold_m: float = 0.01,
                radius_range_m: tuple[float, float] = (0.01, 1.0), min_inlier_fraction: float = 0.3,
                min_points: int = 10, max_points: int = 20000, n_hypotheses: int = 256,
-               max_radius_rel_std: float = 0.01, max_rms_rel: float = 0.1, seed: int = 0, where: str = "sphere fit") -> SphereFit:
+               max_radius_rel_std: float = 0.01, max_rms_rel: float = 0.1, seed: int = 0,
+               where: str = "sphere fit") -> SphereFit:
     """Fit a sphere to noisy, partial points with outliers (paper §4.3).
 
     Parameters
@@ -475,7 +480,8 @@ def in_box(points: np.ndarray, box: Any) -> np.ndarray:
         return np.asarray(box.contains(points), dtype=bool)
     b = np.asarray(box, dtype=np.float64)
     if b.shape != (2, 3) or not np.isfinite(b).all() or (b[1] <= b[0]).any():
-        raise AppFusionError(f"object box must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max, got {b.tolist()}")
+        raise AppFusionError("object box must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max, "
+                             f"got {b.tolist()}")
     return ((points >= b[0]) & (points <= b[1])).all(axis=-1)
 
 

@@ -81,8 +81,8 @@ def _pixel_rays(intr: Intrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     if intr.dist:
         import cv2
         pts = np.stack([u.ravel(), v.ravel()], -1).reshape(-1, 1, 2).astype(np.float64)
-        xy = cv2.undistortPointsIter(pts, intr.K, np.asarray(intr.dist), None, None,
-                                     (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)).reshape(u.shape + (2,))
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        xy = cv2.undistortPointsIter(pts, intr.K, np.asarray(intr.dist), None, None, crit).reshape(u.shape + (2,))
         d = np.concatenate([xy, np.ones(u.shape + (1,))], axis=-1)
     else:
         d = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
