@@ -707,7 +707,8 @@ class BRDFCut:
         idx = np.arange(len(leaf_label))
         best = np.argmin(chi2, axis=1)
         cur = chi2[idx, leaf_label]
-        switch = np.isfinite(cur) & (cur - chi2[idx, best] >= self.leaf_margin)
+        with np.errstate(invalid="ignore"):
+            switch = np.isfinite(cur) & (cur - chi2[idx, best] >= self.leaf_margin)
         out = leaf_label.copy()
         out[switch] = best[switch]
         return out
@@ -719,7 +720,8 @@ class BRDFCut:
         best = np.argmin(score, axis=1)
         decided = np.isfinite(score[np.arange(len(unrel)), best])
         if C.shape[0] > 1:
-            decided &= (order[:, 1] - order[:, 0]) >= self.assign_margin
+            with np.errstate(invalid="ignore"):
+                decided &= (order[:, 1] - order[:, 0]) >= self.assign_margin
         out = best.copy()
         if not decided.all():
             # nearest reliable cut node in (position / size, normal)

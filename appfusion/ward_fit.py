@@ -203,16 +203,18 @@ def _prepare(hb: HBSAB, min_weight: float, buffer: int = 0, weighting: str = "co
     if not (np.isfinite(v).all() and np.isfinite(g).all() and np.isfinite(m).all()):
         raise EstimationError("Ward fit: the HBSAB holds non-finite sums")
     vmax = float(np.max(np.abs(v)))
-    if not vmax > 0:
+    if not (vmax > 1e-250 and np.isfinite(vmax)):
         raise EstimationError("Ward fit: every reliable texel of the HBSAB is zero (no reflected IR)")
+    # work in units of the largest texel value (scale-free: no under/overflow for any units)
+    v, var = v / vmax, var / vmax / vmax
     if weighting == "relative":
-        pos = (v > 1e-6 * vmax) & (Ws >= 3 * max(min_weight, 1e-12))
+        pos = (v > 1e-6) & (Ws >= 3 * max(min_weight, 1e-12))
         c2 = float(np.median(var[pos] / (v[pos] ** 2))) if np.any(pos) else 0.0
-        s2 = c2 * v * v + (1e-3 * vmax) ** 2
+        s2 = c2 * v * v + 1e-6
     else:
-        s2 = float(np.sum(Ws * var) / np.sum(Ws)) + (1e-6 * vmax) ** 2
+        s2 = float(np.sum(Ws * var) / np.sum(Ws)) + 1e-12
     sigma = np.sqrt(s2 / np.maximum(Ws, 1e-12))
-    return sel, v, g, m, sigma, int(clipped.sum())
+    return sel, v, g, m, sigma, int(clipped.sum()), vmax
 
 
 def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple | None = None,
@@ -258,7 +260,9 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated) 
         raise EstimationError(f"Ward fit: diffuse must be 'min' or 'fit', got {diffuse!r}")
     if weighting not in ("count", "relative"):
         raise EstimationError(f"Ward fit: weighting must be 'count' or 'relative', got {weighting!r}")
-    sel, v, g, m, sigma, n_sat = _prepare(hb, min_weight, buffer, weighting, max_saturated)
+    sel, v, g, m, sigma, n_sat, unit = _prepare(hb, min_weight, buffer, weighting, max_saturated)
+    if x0 is not None:                                   # to the fit's units (values / unit)
+        x0 = tuple(x / unit if i else x for i, x in enumerate(x0))
     n = hb.n
     d0 = float(v.min())
     inv_s = 1.0 / sigma
@@ -327,8 +331,8 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated) 
     a_sig = float(sig[0]) if np.isfinite(sig[0]) else ALPHA_MAX - ALPHA_MIN
     s_sig = float(sig[1]) if np.isfinite(sig[1]) else float(abs(x[1]))
     dd = float(x[2]) if free_d else d0
-    return WardFit(alpha=float(x[0]), alpha_sigma=min(a_sig, ALPHA_MAX - ALPHA_MIN), rho_s=float(x[1]),
-                   rho_s_sigma=s_sig, diffuse=dd, rho_d=float(np.pi * dd), n_texels=int(len(sel)),
+    return WardFit(alpha=float(x[0]), alpha_sigma=min(a_sig, ALPHA_MAX - ALPHA_MIN), rho_s=float(x[1]) * unit,
+                   rho_s_sigma=s_sig * unit, diffuse=dd * unit, rho_d=float(np.pi * dd * unit), n_texels=int(len(sel)),
                    reduced_chi2=float(s2), at_bound=at_bound, nfev=int(res.nfev), n_saturated=n_sat)
 
 
