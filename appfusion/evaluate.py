@@ -1,0 +1,232 @@
+"""Scan results against the synthetic scanner's ground truth (``SESSION/truth/``).
+
+Only evaluation reads ``truth/``; the engine never does. Metrics (names as in ``appfusion bench``):
+
+- ``ate_mm``: TUM absolute trajectory error (RMSE of camera positions after a rigid Horn alignment)
+  of the object passes' tracked poses against ``truth/groundtruth.txt``.
+- ``chamfer_mm``: mean of the two one-sided mean surface distances between the exported mesh and the
+  truth mesh (truth points within 5 mm of the support plane, which no camera sees, are left out).
+- ``normal_err_deg``: median angle between the sampled points' normals and the truth surface normal
+  at the closest truth point.
+- ``rho_d_median_rel_err``: median over points and channels of ``|rho_d - truth| / truth`` (truth by
+  barycentric interpolation at the closest truth point; points within 1 cm of the plane left out:
+  the plane occludes their lower hemisphere, which the paper's model ignores).
+- ``label_accuracy``: fraction of points (= of area: points are area-uniform) whose cluster maps to
+  their true material, under the best one-to-one mapping of clusters to materials (Hungarian).
+- ``alpha_cluster_rel_err``, ``rho_s_rel_err``: worst relative error over clusters mapped to a glossy
+  Ward material (rho_s: mean over RGB of the per-channel relative error).
+- ``envmap_median_rel_err``: median relative error over covered, lit texels against the truth map.
+- ``relit_rel_rmse``: relative L2 error ``||ours - ref|| / ||ref||`` over the object pixels of the
+  scanner's reference renders under its second environment map.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+
+import numpy as np
+
+from .errors import AppFusionError
+from .result import ScanResult
+
+
+def truth_dir(session: str | os.PathLike) -> Path | None:
+    """``SESSION/truth`` if it exists."""
+    p = Path(session) / "truth"
+    return p if (p / "object.npz").exists() else None
+
+
+def load_truth(tdir: Path) -> dict[str, Any]:
+    with np.load(tdir / "object.npz") as z:
+        obj = {k: z[k] for k in z.files}
+    mats = json.loads((tdir / "materials.json").read_text())["materials"]
+    return {"object": obj, "materials": mats, "dir": tdir}
+
+
+def _closest(V, F, pts):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)), o3d.core.Tensor(np.asarray(F, np.uint32)))
+    q = scene.compute_closest_points(o3d.core.Tensor(np.asarray(pts, np.float32)))
+    cp = q["points"].numpy()
+    prim = q["primitive_ids"].numpy().astype(np.int64)
+    uv = q["primitive_uvs"].numpy()
+    bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], 1)
+    return cp, prim, bary
+
+
+def _sample_mesh(V, F, n, seed=0):
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F, np.int64)
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    rng = np.random.default_rng(seed)
+    t = rng.choice(len(F), size=n, p=area / area.sum())
+    r1, r2 = rng.random(n), rng.random(n)
+    s = np.sqrt(r1)
+    return (1 - s)[:, None] * a[t] + (s * (1 - r2))[:, None] * b[t] + (s * r2)[:, None] * c[t]
+
+
+def chamfer_mm(V, F, tV, tF, n: int = 30000, min_z: float = 0.005) -> float:
+    """Symmetric mean surface distance (mm) between a mesh and the truth mesh (see module doc)."""
+    if len(F) == 0:
+        return float("nan")
+    ours = _sample_mesh(V, F, n)
+    truth = _sample_mesh(tV, tF, n, seed=1)
+    truth = truth[truth[:, 2] > min_z]
+    d1 = np.linalg.norm(_closest(tV, tF, ours)[0] - ours, axis=1)
+    d2 = np.linalg.norm(_closest(V, F, truth)[0] - truth, axis=1)
+    return float(1000 * 0.5 * (d1.mean() + d2.mean()))
+
+
+def horn_align(A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimising ||R A + t - B|| (Horn / Umeyama, no scale)."""
+    ma, mb = A.mean(0), B.mean(0)
+    H = (A - ma).T @ (B - mb)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1, 1, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, mb - R @ ma
+
+
+def ate_rmse_mm(est: dict[int, np.ndarray], times: np.ndarray, gt_times: np.ndarray, gt_poses: np.ndarray) -> float:
+    """TUM ATE RMSE (mm) of estimated camera positions, matched to ground truth by timestamp."""
+    idx = np.array(sorted(est))
+    if len(idx) < 3:
+        return float("nan")
+    t = times[idx]
+    j = np.clip(np.searchsorted(gt_times, t), 1, len(gt_times) - 1)
+    j = np.where(np.abs(gt_times[j - 1] - t) < np.abs(gt_times[j] - t), j - 1, j)
+    A = np.array([est[i][:3, 3] for i in idx])
+    B = gt_poses[j][:, :3, 3]
+    R, tt = horn_align(A, B)
+    return float(1000 * np.sqrt(np.mean(np.sum((A @ R.T + tt - B) ** 2, axis=1))))
+
+
+def cluster_mapping(labels: np.ndarray, material: np.ndarray) -> tuple[dict[int, int], float]:
+    """Best one-to-one cluster -> material mapping (Hungarian on point counts) and its accuracy.
+
+    Clusters left without a partner map to their majority material (counted wrong where that material
+    is another cluster's).
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    k, m = int(labels.max()) + 1, int(material.max()) + 1
+    C = np.zeros((k, m))
+    np.add.at(C, (labels, material), 1)
+    r, c = linear_sum_assignment(-C)
+    mapping = {int(a): int(b) for a, b in zip(r, c)}
+    correct = C[r, c].sum()
+    for a in range(k):
+        if a not in mapping:
+            mapping[a] = int(np.argmax(C[a]))
+    return mapping, float(correct / max(len(labels), 1))
+
+
+def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[int, np.ndarray] | None = None,
+                    timestamps: np.ndarray | None = None, relight: bool = True, relight_spp: int = 32) -> dict[str, Any]:
+    """Every metric the truth allows; a dict name -> value (NaN where a metric cannot be computed)."""
+    tdir = truth_dir(session)
+    if tdir is None:
+        raise AppFusionError(f"{session}: no truth/ folder (only synthetic sessions have ground truth)")
+    T = load_truth(tdir)
+    obj, mats = T["object"], T["materials"]
+    tV, tF = obj["vertices"], obj["faces"]
+    out: dict[str, Any] = {}
+    P, N = result.positions, result.normals
+    cp, prim, bary = _closest(tV, tF, P)
+    tri = tF[prim]
+    tn = np.einsum("pk,pki->pi", bary, obj["vertex_normals"][tri])
+    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-12)
+    ang = np.degrees(np.arccos(np.clip(np.abs(np.sum(tn * N, 1)), -1, 1)))
+    out["normal_err_deg"] = float(np.median(ang))
+    out["chamfer_mm"] = chamfer_mm(result.mesh_vertices, result.mesh_faces, tV, tF)
+    # materials: face material of the closest triangle
+    fm = obj["face_material"][prim]
+    mapping, acc = cluster_mapping(result.labels, fm)
+    out["label_accuracy"] = acc
+    out["cluster_to_material"] = mapping
+    a_err, s_err = [], []
+    for c, mid in mapping.items():
+        m = mats[mid]
+        if m.get("lobe", "ward") != "ward" or max(m["rho_s"]) <= 0 or c >= result.n_clusters:
+            continue
+        a_err.append(abs(result.alpha[c] - m["alpha"]) / m["alpha"])
+        rs = np.asarray(m["rho_s"], float)
+        s_err.append(float(np.mean(np.abs(result.rho_s[c] - rs) / rs)))
+    out["alpha_cluster_rel_err"] = float(max(a_err)) if a_err else float("nan")
+    out["rho_s_rel_err"] = float(max(s_err)) if s_err else float("nan")
+    keep = cp[:, 2] > 0.01
+    trd = np.einsum("pk,pki->pi", bary, obj["rho_d"][tri])
+    if "rgb pass" in str(result.info.get("rho_d_source", "rgb pass")) and keep.any():
+        rel = np.abs(result.rho_d[keep] - trd[keep]) / np.maximum(trd[keep], 1e-3)
+        out["rho_d_median_rel_err"] = float(np.median(rel))
+    else:
+        out["rho_d_median_rel_err"] = float("nan")
+    if poses and timestamps is not None and (tdir / "groundtruth.txt").exists():
+        from replay.session import parse_groundtruth
+
+        gt_t, gt_p, _, _ = parse_groundtruth((tdir / "groundtruth.txt").read_text(), tdir / "groundtruth.txt")
+        out["ate_mm"] = ate_rmse_mm(poses, np.asarray(timestamps), gt_t, gt_p)
+    if result.envmap is not None:
+        out["envmap_median_rel_err"] = envmap_error(result.envmap, tdir)
+    if relight and (tdir / "references" / "views.json").exists() and len(result.mesh_faces):
+        out["relit_rel_rmse"], out["_relit_pairs"] = relit_error(result, tdir, spp=relight_spp)
+    return out
+
+
+def truth_envmap(tdir: Path, name: str, n: int) -> np.ndarray:
+    """A truth environment map (lat-long EXR in truth/envmaps) as a (2, n, n, 3) octahedral map."""
+    import cv2
+
+    from . import octahedral as oc
+
+    p = tdir / "envmaps" / f"{name}.exr"
+    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise AppFusionError(f"{p}: cannot read the truth environment map")
+    return oc.latlong_to_sphere(img[..., ::-1].astype(np.float64), n, sub=4).astype(np.float32)
+
+
+def envmap_error(env: np.ndarray, tdir: Path, covered: np.ndarray | None = None) -> float:
+    """Median texel-wise relative error over covered, lit directions (§4.3 acceptance figure)."""
+    n = env.shape[1]
+    ref = truth_envmap(tdir, "office", n)
+    lum_ref = ref.mean(-1)
+    lum = env.mean(-1)
+    ok = (lum > 0) & (lum_ref > 0.05 * np.median(lum_ref[lum_ref > 0]))
+    if covered is not None:
+        ok &= covered
+    if not ok.any():
+        return float("nan")
+    return float(np.median(np.abs(lum[ok] - lum_ref[ok]) / lum_ref[ok]))
+
+
+def relit_error(result: ScanResult, tdir: Path, spp: int = 32):
+    """Relative L2 error of relit renders against the scanner's references, and the image pairs."""
+    import cv2
+
+    from .frame import Intrinsics
+    from .relight import render_view
+
+    info = json.loads((tdir / "references" / "views.json").read_text())
+    K = Intrinsics.from_json(info["intrinsics"])
+    env_name = info.get("environment", "sunset")
+    env = truth_envmap(tdir, env_name, 64)
+    num = den = 0.0
+    pairs = []
+    for v in info["views"]:
+        ref = cv2.imread(str(tdir / "references" / v["exr"]), cv2.IMREAD_UNCHANGED)[..., ::-1].astype(np.float32)
+        mask_ref = cv2.imread(str(tdir / "references" / v["mask"]), cv2.IMREAD_GRAYSCALE) > 0
+        img, mask = render_view(result, env, K, np.asarray(v["pose"]), spp=spp)
+        m = mask_ref & mask
+        num += float(np.sum((img[m] - ref[m]) ** 2))
+        den += float(np.sum(ref[m] ** 2))
+        pairs.append((v["name"], img, ref))
+    return (float(np.sqrt(num / den)) if den > 0 else float("nan")), pairs

@@ -1,0 +1,904 @@
+"""Scan orchestration: the paper's passes over one source, in order, as an incremental engine.
+
+A :class:`ScanRunner` consumes frames from a :class:`~appfusion.source.Source` (a recording or a live
+device) and routes each to the pass it belongs to (``Frame.pass_name``, set by recordings from their
+``pass`` events, or by the runner's current pass for live sources):
+
+1. ``ir-calibration`` (§6): IR background, response curve and shifted-Gamma emitter model.
+2. ``environment`` (§4.3): tracking, mirror-ball sphere fit, environment map.
+3. ``geometry`` (§4.1 then §5.1-5.2): tracking + TSDF fusion; at the end of the fusion the object's
+   points are sampled, then the same pass's IR frames feed BRDF fusion (HBSAB, BRDF cut, Ward fit).
+4. ``rgb`` (§4.2, §5.3): white balance, rho_d histograms and rho_s sums.
+5. ``scan``: a device that streams depth, IR and RGB at once runs 3 and 4 on the same frames.
+
+Every pass keeps constant-size state. The runner publishes :class:`Snapshot` objects (small copies
+of that state) for the GUI and the CLI's progress; the GUI never touches the engine's arrays.
+Each finished stage is checkpointed in ``out_dir/state/`` so a scan that was killed resumes from the
+last finished stage when run again with the same output folder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import AppFusionError, PassMissingError
+from .frame import Frame
+
+#: the passes in the order they are scanned
+PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
+#: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
+STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
+
+
+@dataclass
+class ScanConfig:
+    """Quality knobs of a scan (the bench sweeps these; defaults sit on its Pareto front).
+
+    Attributes
+    ----------
+    n_points : int
+        Points sampled on the object's surface (§4.1; paper 100K).
+    voxel_m : float or None
+        TSDF voxel size; None chooses it from the object box.
+    hbsab_n : int
+        HBSAB square side (§5.1).
+    envmap_n : int
+        Environment map square side (paper 2 x 128^2).
+    k_clusters : int or None
+        Number of specular clusters (§5.2); None chooses automatically.
+    rho_d_percentile : float
+        Percentile of L/D taken as rho_d (Eq. 6; paper: 10th).
+    rho_d_bins : int
+        Per-point histogram size for rho_d.
+    frame_stride : int
+        Use every n-th frame of each pass.
+    ball_radius_m : float or None
+        Mirror-ball radius if known.
+    mirror_reflectance : float
+        Reflectance of the mirror ball (divided out of the environment map).
+    box_height_m : float
+        Height of the object box above the marker plane.
+    texture_size : int
+        Side of the exported texture maps.
+    snapshot_interval_s : float
+        Minimum time between two published snapshots.
+    """
+
+    n_points: int = 100_000
+    voxel_m: float | None = None
+    hbsab_n: int = 32
+    envmap_n: int = 128
+    k_clusters: int | None = None
+    rho_d_percentile: float = 10.0
+    rho_d_bins: int = 64
+    frame_stride: int = 1
+    ball_radius_m: float | None = None
+    mirror_reflectance: float = 1.0
+    box_height_m: float = 0.30
+    texture_size: int = 1024
+    snapshot_interval_s: float = 0.1
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class Snapshot:
+    """What the engine looks like now: small copies the GUI may keep and draw.
+
+    Attributes
+    ----------
+    stage : str
+        One of :data:`STAGES`.
+    frame : int
+        Frames processed in this stage so far; ``frames_total`` the stage's total (0 if unknown/live).
+    fps : dict
+        Frames per second of each stage's processing, measured.
+    tracking : str
+        "ok", "lost" or "n/a" (no tracking in this stage).
+    markers_visible : int
+        White circles seen in the last frame (0-4).
+    last_frame : Frame or None
+        The last frame processed (its images feed the stream views).
+    positions, normals : (P, 3) float32 or None
+        Sampled points once the geometry is fused.
+    labels : (P,) int32 or None; rho_d : (P, 3) or None
+    alpha, alpha_sigma : (C,) or None; rho_s : (C, 3) or None
+    envmap : (2, N, N, 3) float32 or None; env_coverage : (2, N, N) bool or None
+    hbsabs : list of (n, n) float arrays per cluster, or None; hbsab_fits : same with the fitted lobes
+    guidance : str
+        What the user should do next (shown by the GUI).
+    messages : list of str
+        Warnings and notes so far (lost tracking, frames without markers, ...).
+    """
+
+    stage: str = "ir-calibration"
+    frame: int = 0
+    frames_total: int = 0
+    fps: dict[str, float] = field(default_factory=dict)
+    tracking: str = "n/a"
+    markers_visible: int = 0
+    last_frame: Frame | None = None
+    positions: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    rho_d: np.ndarray | None = None
+    alpha: np.ndarray | None = None
+    alpha_sigma: np.ndarray | None = None
+    rho_s: np.ndarray | None = None
+    envmap: np.ndarray | None = None
+    env_coverage: np.ndarray | None = None
+    hbsabs: list | None = None
+    hbsab_fits: list | None = None
+    guidance: str = ""
+    messages: list[str] = field(default_factory=list)
+    history: dict[str, list] = field(default_factory=dict)
+
+
+GUIDANCE = {
+    "ir-calibration": "Cover the emitter for the dark frames, then hold a white sheet at 50-120 cm.",
+    "environment": "Place the mirror ball inside the markers and orbit it slowly, keeping the circles in view.",
+    "geometry": "Replace the ball by the object and orbit it at 40-100 cm; watch the model fill in.",
+    "ir": "Keep orbiting: the IR highlights are being fused into the material clusters.",
+    "rgb": "Orbit once more with the colour camera; rho_d and rho_s converge as views accumulate.",
+    "export": "Writing the mesh, textures and report.",
+    "done": "Done: open the report or export again.",
+}
+
+
+def plan_passes(source) -> dict[str, tuple[int, int]]:
+    """Frame index ranges ``[start, stop)`` of each pass in a recording.
+
+    Sessions of our format say where each pass starts (``pass`` events). Recordings without pass
+    events (TUM, Redwood, Azure Kinect) are one ``scan`` pass. Raises :class:`PassMissingError` for
+    a live source (it has no ranges: passes follow the user).
+    """
+    if not getattr(source, "is_recording", False):
+        raise PassMissingError("a live source has no recorded passes; the runner follows next_pass()")
+    n = len(source)
+    events = [e for e in getattr(source, "events", []) if e[1] == "pass"]
+    if not events:
+        return {"scan": (0, n)} if n else {}
+    times = np.asarray(source.timestamps() if callable(getattr(source, "timestamps", None)) else source.timestamps)
+    ev_t = np.array([e[0] for e in events])
+    # pass of each frame = last pass event at or before its time (frames before the first event: none)
+    which = np.searchsorted(ev_t, times + 1e-9, side="right") - 1
+    ranges: dict[str, tuple[int, int]] = {}
+    for k, (t, _, name) in enumerate(events):
+        idx = np.flatnonzero(which == k)
+        if len(idx) == 0:
+            continue
+        if name in ranges:  # a pass recorded twice: keep the longer run
+            a, b = ranges[name]
+            if b - a >= len(idx):
+                continue
+        ranges[name] = (int(idx[0]), int(idx[-1]) + 1)
+    return ranges
+
+
+class _Control:
+    """Thread-safe pause / stop flags and the live pass selector, set by the GUI."""
+
+    def __init__(self):
+        self.run_event = threading.Event()
+        self.run_event.set()
+        self.stop_event = threading.Event()
+        self.lock = threading.Lock()
+        self.live_pass = "environment"
+
+    def wait_if_paused(self) -> bool:
+        """Block while paused; returns False once a stop was asked for."""
+        while not self.run_event.wait(0.05):
+            if self.stop_event.is_set():
+                return False
+        return not self.stop_event.is_set()
+
+
+class ScanRunner:
+    """Runs a whole scan over one source; the GUI and the CLI drive it.
+
+    Parameters
+    ----------
+    source : Source
+        A recording (passes from its events) or a live device (passes from :meth:`next_pass`).
+    out_dir : path-like
+        Where the result, the checkpoints (``state/``) and the exports go.
+    config : ScanConfig, optional
+    envmap : EnvMap, path or None
+        A previously captured environment map for the same markers (§4.3): the environment pass is
+        skipped (and its frames ignored) when given.
+    ir_profile : path, IR profile or None
+        A saved IR device profile (§6); the ir-calibration pass is skipped when given.
+    log : callable
+        Receives one-line progress messages.
+    progress : bool
+        Show progress bars on stderr.
+
+    Notes
+    -----
+    Contract used by the GUI: :meth:`subscribe`, :meth:`run` (blocking; call it in a worker thread),
+    :meth:`pause`, :meth:`resume`, :meth:`stop`, :meth:`next_pass`, :meth:`paint`, :meth:`undo_paint`,
+    :meth:`result`, :meth:`snapshot`, :meth:`export`.
+    """
+
+    def __init__(self, source, out_dir, config: ScanConfig | None = None, envmap=None, ir_profile=None,
+                 log: Callable[[str], None] | None = None, progress: bool = False):
+        self.source = source
+        self.out_dir = Path(out_dir)
+        self.config = config or ScanConfig()
+        self.log = log or (lambda msg: None)
+        self.show_progress = progress
+        self._ctl = _Control()
+        self._subscribers: list[Callable[[Snapshot], None]] = []
+        self._snap = Snapshot()
+        self._snap_lock = threading.Lock()
+        self._last_publish = 0.0
+        self._paint_log: list[tuple[np.ndarray, np.ndarray]] = []  # (point_idx, previous labels) for undo
+        self._painted: dict[int, int] = {}
+        self.timings: dict[str, dict[str, float]] = {}
+        self.messages: list[str] = []
+        # pass state
+        self.ir_profile = self._load_ir_profile(ir_profile)
+        self.env = self._load_envmap(envmap)
+        self.geometry = None      # fusion + tracking state of the object passes
+        self.env_geometry = None  # tracking state of the environment pass
+        self.lighting = None
+        self.ir = None
+        self.rgb = None
+        self.points: tuple[np.ndarray, np.ndarray] | None = None
+        self.mesh: tuple[np.ndarray, np.ndarray] | None = None
+        self.poses: dict[int, np.ndarray] = {}
+        self._result = None
+
+    # -- control (thread-safe; called from the GUI thread) -------------------------------------------
+    def subscribe(self, callback: Callable[[Snapshot], None]) -> None:
+        """Call ``callback(snapshot)`` (from the worker thread) whenever the state changes, rate-limited."""
+        self._subscribers.append(callback)
+
+    def pause(self) -> None:
+        self._ctl.run_event.clear()
+
+    def resume(self) -> None:
+        self._ctl.run_event.set()
+
+    def stop(self) -> None:
+        """Stop after the current frame; everything computed so far is kept (see :meth:`result`)."""
+        self._ctl.stop_event.set()
+        self._ctl.run_event.set()
+
+    @property
+    def paused(self) -> bool:
+        return not self._ctl.run_event.is_set()
+
+    @property
+    def stopped(self) -> bool:
+        return self._ctl.stop_event.is_set()
+
+    def next_pass(self, name: str | None = None) -> str:
+        """Live sources: move to pass ``name`` (or the next one in :data:`PASSES`); returns it."""
+        with self._ctl.lock:
+            if name is None:
+                order = [p for p in PASSES if p != "scan"]
+                i = order.index(self._ctl.live_pass) if self._ctl.live_pass in order else -1
+                name = order[min(i + 1, len(order) - 1)]
+            if name not in PASSES:
+                raise AppFusionError(f"unknown pass {name!r}; passes are {', '.join(PASSES)}")
+            self._ctl.live_pass = name
+        return name
+
+    def paint(self, point_idx, label: int) -> int:
+        """Manual cluster refinement (§5.2): give points a cluster label that re-clustering keeps.
+
+        Returns the number of points changed. Undo with :meth:`undo_paint`.
+        """
+        idx = np.unique(np.asarray(point_idx, dtype=np.int64).ravel())
+        if self.points is None:
+            raise AppFusionError("nothing to paint yet: the object's points exist after the geometry pass")
+        P = len(self.points[0])
+        if idx.size and (idx.min() < 0 or idx.max() >= P):
+            raise AppFusionError(f"paint: point indices must lie in 0..{P - 1}")
+        label = int(label)
+        if label < 0:
+            raise AppFusionError("paint: cluster labels are >= 0")
+        labels = self._current_labels()
+        prev = labels[idx].copy()
+        self._paint_log.append((idx, prev))
+        for i in idx:
+            self._painted[int(i)] = label
+        self._apply_paint()
+        return int(np.sum(prev != label))
+
+    def undo_paint(self) -> bool:
+        """Undo the last :meth:`paint`; returns False when there is nothing to undo."""
+        if not self._paint_log:
+            return False
+        idx, prev = self._paint_log.pop()
+        for i, p in zip(idx, prev):
+            self._painted[int(i)] = int(p)
+        self._apply_paint()
+        return True
+
+    # -- snapshots --------------------------------------------------------------------------------
+    def snapshot(self) -> Snapshot:
+        with self._snap_lock:
+            return self._snap
+
+    def _publish(self, force: bool = False, **changes) -> None:
+        with self._snap_lock:
+            snap = Snapshot(**{**self._snap.__dict__, **changes})
+            snap.messages = list(self.messages[-50:])
+            self._snap = snap
+        now = time.perf_counter()
+        if not force and now - self._last_publish < self.config.snapshot_interval_s:
+            return
+        self._last_publish = now
+        for cb in list(self._subscribers):
+            try:
+                cb(snap)
+            except Exception as e:  # an observer must never break the scan
+                self._note(f"snapshot observer failed: {type(e).__name__}: {e}")
+
+    def _note(self, msg: str) -> None:
+        if not self.messages or self.messages[-1] != msg:
+            self.messages.append(msg)
+            self.log(msg)
+
+    # -- checkpoints --------------------------------------------------------------------------------
+    @property
+    def state_dir(self) -> Path:
+        return self.out_dir / "state"
+
+    def _stage_done(self, stage: str) -> bool:
+        return (self.state_dir / f"{stage}.done").exists()
+
+    def _mark_done(self, stage: str, info: dict | None = None) -> None:
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.state_dir / f"{stage}.done.tmp"
+        tmp.write_text(json.dumps({"config": self.config.to_json(), **(info or {})}, default=str))
+        os.replace(tmp, self.state_dir / f"{stage}.done")
+
+    def _save_npz(self, name: str, **arrays) -> None:
+        self.state_dir.mkdir(parents=True, exist_ok=True)
+        tmp = self.state_dir / f"{name}.tmp.npz"
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, self.state_dir / f"{name}.npz")
+
+    def _load_npz(self, name: str) -> dict[str, np.ndarray]:
+        with np.load(self.state_dir / f"{name}.npz", allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+
+    # -- frames -------------------------------------------------------------------------------------
+    def _frames(self, start: int, stop: int, stage: str):
+        """Frames ``start..stop-1`` of a recording with the stride applied; honours pause/stop."""
+        from .progress import progress
+
+        stride = max(1, int(self.config.frame_stride))
+        n = len(range(start, stop, stride))
+        self.source.seek(start)
+        it = iter(self.source)
+        t0 = time.perf_counter()
+        done = 0
+        for k in progress(range(start, stop), total=stop - start, desc=stage, enable=self.show_progress):
+            if not self._ctl.wait_if_paused():
+                self._note(f"{stage}: stopped by the user after {done} frames")
+                return
+            try:
+                frame = next(it)
+            except StopIteration:
+                return
+            if (k - start) % stride:
+                continue
+            yield frame
+            done += 1
+            dt = time.perf_counter() - t0
+            self._publish(stage=stage, frame=done, frames_total=n,
+                          fps={**self._snap.fps, stage: done / dt if dt > 0 else 0.0}, last_frame=frame)
+        dt = time.perf_counter() - t0
+        self.timings[stage] = {"frames": done, "seconds": round(dt, 3),
+                               "ms_per_frame": round(1000 * dt / max(done, 1), 2)}
+
+    # -- loading reusable inputs -----------------------------------------------------------------------
+    def _load_ir_profile(self, profile):
+        if profile is None:
+            return None
+        from calibration.ir_profile import IRProfile
+
+        return profile if isinstance(profile, IRProfile) else IRProfile.load(profile)
+
+    def _load_envmap(self, envmap):
+        if envmap is None:
+            return None
+        from .envmap import EnvMap
+
+        if isinstance(envmap, EnvMap):
+            return envmap
+        if isinstance(envmap, np.ndarray):
+            return EnvMap(radiance=envmap.astype(np.float32))
+        return EnvMap.load(envmap, n=self.config.envmap_n)
+
+    # -- the stages ----------------------------------------------------------------------------------
+    def _stage_ir_calibration(self, start: int, stop: int) -> None:
+        """§6: background (emitter off), response curve and emitter model (white sheet)."""
+        from calibration.ir_profile import IRProfile
+        from calibration.ir_response import calibrate_ir
+
+        path = self.state_dir / "ir_profile.json"
+        if self._stage_done("ir-calibration") and path.exists():
+            self.ir_profile = IRProfile.load(path)
+            self._note("ir-calibration: reusing the checkpointed IR profile")
+            return
+        meta = self.source.meta if isinstance(self.source.meta, dict) else {}
+        emitter = meta.get("emitter_position_m", (0.075, 0.0, 0.0))
+        self._publish(force=True, stage="ir-calibration", guidance=GUIDANCE["ir-calibration"])
+        frames = (f for f in self._frames(start, stop, "ir-calibration") if f.ir is not None)
+        t0 = time.perf_counter()
+        self.ir_profile = calibrate_ir(frames, emitter_position=emitter, device=str(meta.get("device", "")))
+        self.ir_profile.save(path)
+        self._mark_done("ir-calibration", {"seconds": time.perf_counter() - t0})
+        p = self.ir_profile
+        self._note(f"ir-calibration: background {p.background:.1f} counts, gamma {p.gamma:.3f}, "
+                   f"emitter model {p.emitter_model}")
+
+    def _stage_environment(self, start: int, stop: int) -> None:
+        """§4.3: track the camera on the markers, fit the ball, accumulate the environment map."""
+        from calibration.white_balance import WhiteBalance
+        from .envmap import EnvMap
+        from .lighting_pass import LightingPass
+
+        path = self.state_dir / "envmap.npz"
+        if self._stage_done("environment") and path.exists():
+            self.env = EnvMap.load(path)
+            self._note("environment: reusing the checkpointed environment map")
+            return
+        cfg = self.config
+        geo = self._new_geometry(integrate=True)
+        light = LightingPass(n=cfg.envmap_n, radius=cfg.ball_radius_m, rho_mirror=cfg.mirror_reflectance)
+        wb = WhiteBalance(**self._marker_kwargs())
+        self._publish(force=True, stage="environment", guidance=GUIDANCE["environment"], tracking="ok")
+        no_marker = 0
+        for frame in self._frames(start, stop, "environment"):
+            track = geo.track(frame)
+            if track.pose is None:
+                self._publish(tracking="lost")
+                continue
+            light.box = geo.box
+            if frame.depth is not None and light.sphere is None:
+                light.add_depth(frame.depth, frame.depth_intrinsics, track.pose, box=geo.box)
+                if light.n_depth_frames >= 10 and light.n_depth_frames % 5 == 0:
+                    try:
+                        light.fit()
+                    except AppFusionError as e:
+                        self._note(f"environment: sphere fit not ready yet ({e})")
+            if frame.rgb is not None:
+                rgb = wb.apply(frame, track.pose)
+                if rgb is None:
+                    no_marker += 1
+                    continue
+                light.add_frame(frame, pose=track.pose, rgb_linear=rgb)
+            self._publish(tracking=track.state, markers_visible=track.markers_visible)
+            if light.n_rgb_frames and light.n_rgb_frames % 10 == 0:
+                env = light.envmap()
+                self._publish(envmap=env.radiance.copy(), env_coverage=env.known.copy())
+        if light.sphere is None:
+            light.fit()  # raises a clear EstimationError when the ball was never seen well enough
+            for rgb, K, pose_rgb, mask in light._pending:
+                light.add_rgb(rgb, K, pose_rgb, mask)
+        if no_marker:
+            self._note(f"environment: {no_marker} RGB frames had no visible marker and kept the last white reference")
+        self.env = light.envmap()
+        self.env.save_npz(path)
+        self._publish(force=True, envmap=self.env.radiance.copy(), env_coverage=self.env.known.copy())
+        self._mark_done("environment", {"sphere": light.sphere.to_json() if light.sphere else None,
+                                        "coverage": self.env.coverage_fraction()})
+        self._note(f"environment: ball fitted, map coverage {100 * self.env.coverage_fraction():.0f}%")
+
+    def _stage_geometry(self, start: int, stop: int, pass_name: str) -> None:
+        """§4.1: tracking + TSDF fusion, markers and object box, then point sampling."""
+        cfg = self.config
+        if self._stage_done("geometry"):
+            g = self._load_npz("geometry")
+            self.points = (g["positions"], g["normals"])
+            self.mesh = (g["mesh_vertices"], g["mesh_faces"])
+            self.poses = {int(i): p for i, p in zip(g["pose_index"], g["poses"])}
+            self._note("geometry: reusing the checkpointed geometry")
+            self._publish(force=True, positions=self.points[0], normals=self.points[1])
+            return
+        self.geometry = self._new_geometry(integrate=True)
+        self._publish(force=True, stage="geometry", guidance=GUIDANCE["geometry"], tracking="ok")
+        lost = 0
+        for frame in self._frames(start, stop, "geometry"):
+            track = self.geometry.track(frame)
+            if track.pose is None:
+                lost += 1
+                self._publish(tracking="lost", markers_visible=track.markers_visible)
+                continue
+            self.poses[frame.index] = track.pose
+            self._publish(tracking=track.state, markers_visible=track.markers_visible)
+        if lost:
+            self._note(f"geometry: tracking lost in {lost} frames (not fused; the scan resumed when the view returned)")
+        V, F, P, N = self.geometry.finish(cfg.n_points)
+        self.points, self.mesh = (P, N), (V, F)
+        idx = np.array(sorted(self.poses), np.int64)
+        self._save_npz("geometry", positions=P, normals=N, mesh_vertices=V, mesh_faces=F, pose_index=idx,
+                       poses=np.array([self.poses[i] for i in idx]).reshape(-1, 4, 4))
+        self._mark_done("geometry", {"points": len(P), "faces": len(F), "frames_lost": lost})
+        self._publish(force=True, positions=P.copy(), normals=N.copy())
+        self._note(f"geometry: {len(F)} mesh faces, {len(P)} points sampled on the object")
+
+    def _stage_ir(self, start: int, stop: int) -> None:
+        """§5.1-5.2: IR frames of the geometry pass into the BRDF cut; clusters and Ward fits."""
+        from .ir_pass import IRPass
+
+        if self._stage_done("ir"):
+            self._ir_result = self._load_npz("ir")
+            self._note("ir: reusing the checkpointed clusters")
+            self._publish(force=True, labels=self._ir_result["labels"], alpha=self._ir_result["alpha"])
+            return
+        if self.ir_profile is None:
+            raise PassMissingError("the IR pass needs an IR profile: record an ir-calibration pass or give "
+                                   "--ir-profile")
+        P, N = self.points
+        self.ir = IRPass(P, N, self.ir_profile, hbsab_n=self.config.hbsab_n, k=self.config.k_clusters)
+        for i, lab in self._painted.items():
+            self.ir.set_labels([i], lab)
+        meta = self.source.meta if isinstance(self.source.meta, dict) else {}
+        emitter = meta.get("emitter_position_m")
+        self._publish(force=True, stage="ir", guidance=GUIDANCE["ir"])
+        used = 0
+        for frame in self._frames(start, stop, "ir"):
+            pose = self.poses.get(frame.index)
+            if pose is None or frame.ir is None or frame.depth is None or frame.emitter is False:
+                continue
+            self.ir.add_frame(frame.ir, frame.depth, frame.depth_intrinsics, pose, emitter)
+            used += 1
+            if used % 15 == 0:
+                self._publish_ir(self.ir.result(fit=True), used)
+        if used == 0:
+            raise PassMissingError("the geometry pass has no IR frames with tracked poses: clusters and "
+                                   "roughness cannot be estimated")
+        res = self.ir.result(fit=True)
+        self._publish_ir(res, used, force=True)
+        self._ir_result = self._ir_arrays(res)
+        self._save_npz("ir", **self._ir_result)
+        self._mark_done("ir", {"frames": used, "k": res.k, "k_auto": res.k_auto, "notes": res.notes})
+        al = ", ".join(f"{a:.3f}" for a in self._ir_result["alpha"])
+        self._note(f"ir: {res.k} specular cluster(s){' (automatic k)' if res.k_auto else ''}, alpha = {al}")
+
+    @staticmethod
+    def _ir_arrays(res) -> dict[str, np.ndarray]:
+        alpha = res.alphas()
+        sig = np.array([c.alpha_sigma if c.alpha_sigma is not None else np.nan for c in res.clusters])
+        fitted = res.fitted
+        rho_s_ir = np.array([c.fit.rho_s if c.fit is not None else 0.0 for c in res.clusters])
+        return {"labels": res.labels.astype(np.int32), "alpha": alpha.astype(np.float32),
+                "alpha_sigma": np.nan_to_num(sig, nan=0.0).astype(np.float32), "fitted": fitted,
+                "rho_s_ir": rho_s_ir.astype(np.float32)}
+
+    def _publish_ir(self, res, used: int, force: bool = False) -> None:
+        arr = self._ir_arrays(res)
+        hb, fits = [], []
+        for c in res.clusters:
+            img = c.hbsab.value[0].copy() if c.hbsab is not None else None
+            hb.append(img)
+            fits.append(self._ward_image(c) if img is not None else None)
+        hist = self._snap.history
+        hist.setdefault("alpha", []).append((used, arr["alpha"].tolist()))
+        self._publish(force=force, labels=self._apply_paint_to(arr["labels"]), alpha=arr["alpha"],
+                      alpha_sigma=arr["alpha_sigma"], hbsabs=hb, hbsab_fits=fits, history=hist)
+
+    def _ward_image(self, cluster) -> np.ndarray | None:
+        """The fitted lobe on the HBSAB's square (w_i = w_o = h convention of §5.1)."""
+        if cluster.fit is None:
+            return None
+        from . import octahedral as oc
+        from .brdf import ward_retro
+
+        n = cluster.hbsab.n
+        ch = oc.hemi_directions(n)[..., 2]
+        f = cluster.fit
+        return (f.diffuse + f.rho_s * ward_retro(f.alpha, ch)).astype(np.float32)
+
+    def _stage_rgb(self, start: int, stop: int) -> None:
+        """§4.2 + §5.3: white-balanced RGB frames into per-point rho_d and per-cluster rho_s."""
+        from calibration.white_balance import WhiteBalance
+        from .rgb_pass import RGBPass
+
+        if self._stage_done("rgb"):
+            self._rgb_result = self._load_npz("rgb")
+            self._note("rgb: reusing the checkpointed rho_d / rho_s")
+            return
+        P, N = self.points
+        labels = self._current_labels()
+        alpha = self._ir_result["alpha"] if getattr(self, "_ir_result", None) is not None else np.array([0.3])
+        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, **self._rgb_kwargs())
+        wb = WhiteBalance(**self._marker_kwargs())
+        if self.geometry is None:
+            self.geometry = self._new_geometry(integrate=False, mesh=self.mesh)
+        self._publish(force=True, stage="rgb", guidance=GUIDANCE["rgb"], tracking="ok")
+        used = no_marker = lost = 0
+        for frame in self._frames(start, stop, "rgb"):
+            if frame.rgb is None or frame.depth is None:
+                continue
+            pose = self.poses.get(frame.index)
+            if pose is None:
+                track = self.geometry.track(frame, integrate=False)
+                pose = track.pose
+                self._publish(tracking=track.state, markers_visible=track.markers_visible)
+            if pose is None:
+                lost += 1
+                continue
+            rgb = wb.apply(frame, pose)
+            if rgb is None:
+                no_marker += 1
+                continue
+            self.rgb.add_frame(rgb, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
+                               frame.depth_to_rgb)
+            used += 1
+            if used % 10 == 0:
+                r = self.rgb.result()
+                hist = self._snap.history
+                hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
+                self._publish(rho_d=np.asarray(r.rho_d, np.float32), rho_s=np.asarray(r.rho_s, np.float32),
+                              history=hist)
+        if used == 0:
+            raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "
+                                   "no marker visible for white balance)")
+        if no_marker:
+            self._note(f"rgb: {no_marker} frames without a visible marker were skipped (no white reference yet)")
+        if lost:
+            self._note(f"rgb: tracking lost in {lost} frames")
+        r = self.rgb.result()
+        self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
+                            "counts": np.asarray(r.counts)}
+        self._save_npz("rgb", **self._rgb_result)
+        self._mark_done("rgb", {"frames": used})
+        self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
+        self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
+                   + "; ".join(", ".join(f"{v:.3f}" for v in row) for row in self._rgb_result["rho_s"]))
+
+    # -- labels and painting ---------------------------------------------------------------------------
+    def _current_labels(self) -> np.ndarray:
+        if getattr(self, "_ir_result", None) is not None:
+            base = self._ir_result["labels"]
+        elif self.points is not None:
+            base = np.zeros(len(self.points[0]), np.int32)
+        else:
+            return np.zeros(0, np.int32)
+        return self._apply_paint_to(base)
+
+    def _apply_paint_to(self, labels: np.ndarray) -> np.ndarray:
+        if not self._painted:
+            return labels
+        out = np.array(labels, np.int32, copy=True)
+        idx = np.fromiter(self._painted.keys(), np.int64)
+        out[idx] = np.fromiter(self._painted.values(), np.int64)
+        return out
+
+    def _apply_paint(self) -> None:
+        if self.ir is not None:
+            for i, lab in self._painted.items():
+                self.ir.set_labels([i], lab)
+        self._publish(force=True, labels=self._current_labels())
+
+    def _marker_kwargs(self) -> dict[str, Any]:
+        meta = self.source.meta if isinstance(self.source.meta, dict) else {}
+        return {"markers": ((meta.get("extra") or {}).get("markers") or {})}
+
+    def _rgb_kwargs(self) -> dict[str, Any]:
+        return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins}
+
+    # -- results -------------------------------------------------------------------------------------
+    def result(self):
+        """The :class:`~appfusion.result.ScanResult` so far (partial before the scan ends)."""
+        from .result import ScanResult
+
+        if self.points is None:
+            raise PassMissingError("no geometry yet: the object's points exist after the geometry pass")
+        P, N = self.points
+        labels = self._current_labels()
+        ir = getattr(self, "_ir_result", None)
+        rgb = getattr(self, "_rgb_result", None)
+        k = int(labels.max()) + 1 if len(labels) else 1
+        alpha = np.full(k, 0.3, np.float32)
+        sigma = np.zeros(k, np.float32)
+        model = ["diffuse"] * k
+        if ir is not None:
+            m = min(k, len(ir["alpha"]))
+            alpha[:m], sigma[:m] = ir["alpha"][:m], ir["alpha_sigma"][:m]
+            model[:m] = ["ward" if f else "diffuse" for f in ir["fitted"][:m]]
+        rho_s = np.zeros((k, 3), np.float32)
+        rho_d = np.full((len(P), 3), 0.5, np.float32)
+        if rgb is not None:
+            m = min(k, len(rgb["rho_s"]))
+            rho_s[:m] = np.maximum(rgb["rho_s"][:m], 0)
+            rho_d = np.clip(np.nan_to_num(rgb["rho_d"], nan=0.5), 0, None)
+        model = [("ward" if (mm == "ward" and rho_s[c].max() > 0) else "diffuse") for c, mm in enumerate(model)]
+        V, F = self.mesh if self.mesh is not None else (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+        info = {"timings": self.timings, "messages": self.messages, "config": self.config.to_json(),
+                "rho_d_source": "rgb pass (Eq. 6)" if rgb is not None else "not estimated (0.5 grey)",
+                "alpha_source": "ir pass (§5.1)" if ir is not None else "not estimated (0.3)"}
+        return ScanResult(P, N, rho_d, labels, rho_s, alpha, sigma, mesh_vertices=V, mesh_faces=F,
+                          envmap=None if self.env is None else self.env.radiance, model=model, info=info)
+
+    # -- running ---------------------------------------------------------------------------------------
+    def run(self):
+        """Run the whole scan (blocking) and return the :class:`~appfusion.result.ScanResult`.
+
+        Recordings run their passes in order; a live source is recorded pass by pass into
+        ``out_dir/live-session`` (crash-safe) and each pass is processed when the user moves on
+        (:meth:`next_pass`) or stops. A stop keeps everything computed so far.
+        """
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        if not self.source.is_open:
+            self.source.open()
+        if not getattr(self.source, "is_recording", False):
+            return self._run_live()
+        return self._run_recording()
+
+    def _run_recording(self):
+        ranges = plan_passes(self.source)
+        has = set(ranges)
+        obj = "geometry" if "geometry" in has else ("scan" if "scan" in has else None)
+        rgbp = "rgb" if "rgb" in has else ("scan" if "scan" in has else None)
+        if obj is None:
+            raise PassMissingError(f"the recording has no geometry or scan pass (it has: "
+                                   f"{', '.join(sorted(has)) or 'no frames'}): nothing to reconstruct")
+        caps = self.source.caps
+        self._plan = {"passes": {k: list(v) for k, v in ranges.items()}}
+        self._note("passes: " + ", ".join(f"{k} ({b - a} frames)" for k, (a, b) in ranges.items()))
+        if self.ir_profile is None and "ir-calibration" in has:
+            self._stage_ir_calibration(*ranges["ir-calibration"])
+        if self.env is None and "environment" in has:
+            self._stage_environment(*ranges["environment"])
+        elif self.env is not None:
+            self._note("environment: reusing the given environment map; the lighting pass is skipped")
+        self._stage_geometry(*ranges[obj], obj)
+        if self.stopped:
+            return self._finish_partial()
+        if "ir" in caps.streams and self.ir_profile is not None:
+            self._stage_ir(*ranges[obj])
+        elif "ir" not in caps.streams:
+            self._note("ir: the recording has no IR stream: one specular cluster, roughness not estimated "
+                       "(diffuse-only model)")
+        else:
+            self._note("ir: no ir-calibration pass and no --ir-profile: roughness and clusters cannot be estimated")
+        if self.stopped:
+            return self._finish_partial()
+        if rgbp is not None and "rgb" in caps.streams:
+            if self.env is None:
+                self._note("rgb: no environment pass and no --envmap: rho_d and rho_s need the lighting; "
+                           "the result keeps geometry, clusters and roughness only")
+            else:
+                self._stage_rgb(*ranges[rgbp])
+        else:
+            self._note("rgb: the recording has no RGB pass: rho_d and rho_s cannot be estimated")
+        return self._finish_partial()
+
+    def _finish_partial(self):
+        res = self.result()
+        res.save(self.out_dir / "result.npz")
+        self._result = res
+        self._publish(force=True, stage="done", guidance=GUIDANCE["done"])
+        return res
+
+    def _run_live(self):
+        from replay.session import SessionReader, SessionWriter
+
+        src = self.source
+        rec_path = self.out_dir / "live-session"
+        intr = dict(src.intrinsics)
+        meta = src.meta if isinstance(src.meta, dict) else {}
+        writer = SessionWriter(rec_path, device=str(meta.get("device", getattr(src, "name", "live"))),
+                               intrinsics=intr, emitter_position_m=meta.get("emitter_position_m", (0.075, 0, 0)))
+        self._publish(force=True, stage=self._ctl.live_pass, guidance=GUIDANCE.get(self._ctl.live_pass, ""))
+        n = 0
+        try:
+            for frame in src:
+                if not self._ctl.wait_if_paused():
+                    break
+                with self._ctl.lock:
+                    p = self._ctl.live_pass
+                writer.write(frame.replace(pass_name=p))
+                n += 1
+                self._publish(stage=p, frame=n, last_frame=frame, guidance=GUIDANCE.get(p, ""))
+        except AppFusionError as e:
+            self._note(f"live source stopped: {e} (the {n} frames recorded so far are kept)")
+        finally:
+            writer.close()
+        self._note(f"live: recorded {n} frames into {rec_path}; processing the passes")
+        self.source = SessionReader(rec_path)
+        self._ctl.stop_event.clear()
+        return self._run_recording()
+
+    # -- export --------------------------------------------------------------------------------------
+    def export(self, out_dir=None, truth=None) -> dict[str, Path]:
+        """Write mesh, textures, environment map and report; returns the written paths."""
+        from .export import export_result
+        from .report import write_report
+
+        out = Path(out_dir or self.out_dir)
+        res = self._result if self._result is not None else self.result()
+        self._publish(force=True, stage="export", guidance=GUIDANCE["export"])
+        files = export_result(res, out, texture_size=self.config.texture_size)
+        if self.env is not None:
+            files["envmap_npz"] = self.env.save_npz(out / "envmap.npz")
+            files["envmap_exr"] = self.env.export_exr(out / "envmap.exr")
+            files["envmap_hdr"] = self.env.export_hdr(out / "envmap.hdr")
+        figures = self._report_figures(out, res)
+        figures.update(getattr(self, "_extra_figs", {}))
+        tables = {"Time per stage": {k: v for k, v in self.timings.items()}}
+        if truth is not None:
+            tables["Errors against ground truth"] = truth
+        files["report"] = write_report(out, res, title=f"appfusion scan of {getattr(self.source, 'path', self.source.name)}",
+                                       figures=figures, tables=tables, notes=self.messages)
+        self._publish(force=True, stage="done", guidance=GUIDANCE["done"])
+        return files
+
+    def _report_figures(self, out: Path, res) -> dict[str, Path]:
+        from .report import fig_convergence, fig_envmap, fig_hbsabs
+
+        rep = out / "report"
+        rep.mkdir(parents=True, exist_ok=True)
+        figs: dict[str, Path] = {}
+        snap = self.snapshot()
+        if snap.hbsabs:
+            figs["HBSAB of each cluster with its fitted Ward lobe (§5.1)"] = fig_hbsabs(
+                [h for h in snap.hbsabs if h is not None], snap.hbsab_fits or [], rep / "hbsabs.png")
+        if snap.history:
+            figs["Convergence of alpha and rho_s over frames"] = fig_convergence(snap.history, rep / "convergence.png")
+        if self.env is not None:
+            figs["Environment map and coverage (§4.3)"] = fig_envmap(self.env.radiance, rep / "envmap.png",
+                                                                    self.env.known)
+        return figs
+
+
+def run_scan(session, out_dir, config: ScanConfig | None = None, envmap=None, ir_profile=None,
+             skip_bad: bool = False, progress: bool = True, log=print, evaluate: bool = True) -> str:
+    """``appfusion scan``: open a recording, run every pass, export, evaluate against truth, report.
+
+    Returns a short human-readable summary. Checkpoints in ``out_dir/state`` make a rerun after a
+    crash resume from the last finished stage.
+    """
+    from replay.open import open_recording
+
+    from .evaluate import evaluate_result, truth_dir
+
+    out_dir = Path(out_dir)
+    t0 = time.perf_counter()
+    src = open_recording(session, skip_bad=skip_bad)
+    with src:
+        runner = ScanRunner(src, out_dir, config=config, envmap=envmap, ir_profile=ir_profile, log=log,
+                            progress=progress)
+        res = runner.run()
+        truth_table = None
+        if evaluate and truth_dir(session) is not None:
+            times = src.timestamps() if callable(getattr(src, "timestamps", None)) else getattr(src, "timestamps", None)
+            m = evaluate_result(res, session, poses=runner.poses, timestamps=times)
+            pairs = m.pop("_relit_pairs", None)
+            m.pop("cluster_to_material", None)
+            truth_table = {k: (round(v, 5) if isinstance(v, float) else v) for k, v in m.items()}
+            (out_dir / "metrics.json").write_text(json.dumps(truth_table, indent=2))
+            if pairs:
+                from .report import fig_pairs
+
+                (out_dir / "report").mkdir(parents=True, exist_ok=True)
+                runner._extra_figs = {"Relit under the second environment map: capture vs reference":
+                                      fig_pairs(pairs, out_dir / "report" / "relit.png")}
+        files = runner.export(out_dir, truth=truth_table)
+    elapsed = time.perf_counter() - t0
+    lines = [f"scan of {session}: {len(res.positions)} points, {res.n_clusters} cluster(s), "
+             f"alpha = {', '.join(f'{a:.3f}' for a in res.alpha)}; {elapsed:.1f} s",
+             f"wrote {files['glb']}, {files['obj']}, {files['ply']}, report {files['report']}"]
+    if truth_table:
+        lines.append("against truth: " + ", ".join(f"{k} {v:.4g}" for k, v in truth_table.items()
+                                                   if isinstance(v, float)))
+    (out_dir / "summary.txt").write_text("\n".join(lines) + "\n")
+    return "\n".join(lines)
