@@ -666,7 +666,8 @@ def _pixel_rays(intr: Intrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Unit camera-frame rays (M, 3) of pixel coordinates u, v (M,), lens distortion undone with OpenCV."""
     if intr.dist and any(intr.dist):
         pts = np.stack([u, v], axis=-1).reshape(-1, 1, 2)
-        xy = cv2.undistortPoints(pts, intr.K, np.asarray(intr.dist, np.float64)).reshape(-1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
+        xy = cv2.undistortPointsIter(pts, intr.K, np.asarray(intr.dist, np.float64), None, None, crit).reshape(-1, 2)
         x, y = xy[:, 0], xy[:, 1]
     else:
         x = (u - intr.cx) / intr.fx

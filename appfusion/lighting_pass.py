@@ -220,18 +220,27 @@ class LightingPass:
                 self._pending.append((rgb, frame.rgb_intrinsics, pose_rgb, mask))
 
     # -- result -----------------------------------------------------------------------------------
-    def envmap(self, fill: str | None = None) -> EnvMap:
-        """The environment map so far (marker frame); ``fill`` = an :meth:`EnvMap.fill` method or None."""
-        meta: dict[str, Any] = {"rgb_frames": self.n_rgb_frames, "depth_frames": self.n_depth_frames,
+    def envmap(self, fill: str | None = None, meta: dict[str, Any] | None = None) -> EnvMap:
+        """The environment map so far (marker frame).
+
+        Parameters
+        ----------
+        fill : str, optional
+            An :meth:`EnvMap.fill` method to apply, or None.
+        meta : dict, optional
+            Extra JSON-serialisable provenance to store (e.g. which marker set the map belongs to).
+        """
+        info: dict[str, Any] = {"rgb_frames": self.n_rgb_frames, "depth_frames": self.n_depth_frames,
                                 "per_frame_center": self.per_frame_center,
                                 "skipped_frames": self.n_skipped_frames}
         if self.center_shifts_m:
-            meta["per_frame_center_shift_mm"] = {"frames": len(self.center_shifts_m),
+            info["per_frame_center_shift_mm"] = {"frames": len(self.center_shifts_m),
                                                  "median": 1000 * float(np.median(self.center_shifts_m)),
                                                  "max": 1000 * float(np.max(self.center_shifts_m))}
         if self.sphere is not None:
-            meta["sphere"] = self.sphere.to_json()
-        env = self.acc.envmap(meta)
+            info["sphere"] = self.sphere.to_json()
+        info.update(meta or {})
+        env = self.acc.envmap(info)
         return env.fill(fill) if fill else env
 
 

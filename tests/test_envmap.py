@@ -413,8 +413,8 @@ def test_add_frame_holds_rgb_until_fit():
     fit = lp.fit()
     assert lp.n_rgb_frames == 4 and fit.radius == RADIUS
     assert np.linalg.norm(fit.center - CENTER) < 0.002
-    em = lp.envmap(fill="nearest")
-    assert em.filled.any() and em.known.all()
+    em = lp.envmap(fill="nearest", meta={"markers": "set-1"})
+    assert em.filled.any() and em.known.all() and em.meta["markers"] == "set-1" and em.meta["fill"] == "nearest"
     with pytest.raises(AppFusionError, match="no pose"):
         lp.add_frame(Frame(index=9, timestamp=1.0))
 
