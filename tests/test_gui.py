@@ -683,7 +683,12 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     rate = win.stats.busy_rate()
     print(f"UI redraws/s while processing: {rate:.1f}; mean/max tick {win.stats.cost_ms()} ms; "
           f"snapshots drawn {win.stats.snapshots_drawn}; GL repaints {win.points.gl.paints}")
-    assert rate >= 20, f"UI redraw rate while processing {rate:.1f}/s < 20/s"
+    # >= 20 redraws/s while the engine works; on a machine loaded far beyond its cores (other test
+    # processes in CI) this process gets a fraction of a core, so ask for less there
+    load = os.getloadavg()[0] / (os.cpu_count() or 1)
+    need = 20 if load < 2.0 else 15
+    assert rate >= need, f"UI redraw rate while processing {rate:.1f}/s < {need}/s (load {load:.1f} per core)"
+    assert win.stats.cost_ms()[0] < 20, "the UI thread's own work per redraw is too slow"
     assert win.snapshot.stage == "done" and win.snapshot.frame == sum(n for _, n in PASS_PLAN)
     assert win.stage_labels["rgb"].text().startswith("\u2713")
     assert np.isfinite(win.env.coverage) and win.env.coverage > 0.9
@@ -693,6 +698,20 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     win.points.gl.setCameraPosition(elevation=0, azimuth=0, distance=0.45)
     win.points.gl.opts["center"] = QtGui.QVector3D(0, 0, 0.07)
     shoot(win, "before-paint")
+    from appfusion.gui.colours import cluster_rgb
+
+    def centre_rgb():
+        """Mean colour of the 3-D view's framebuffer around its centre (what the user sees)."""
+        _app().processEvents()
+        img = win.points.grab_image().convertToFormat(QtGui.QImage.Format.Format_RGB888)
+        a = np.frombuffer(img.constBits(), np.uint8).reshape(img.height(), img.bytesPerLine())[:, :3 * img.width()]
+        a = a.reshape(img.height(), img.width(), 3)
+        h_, w_ = a.shape[:2]
+        return a[h_ // 2 - 3:h_ // 2 + 4, w_ // 2 - 3:w_ // 2 + 4].reshape(-1, 3).mean(0) / 255.0
+
+    # the wrong patch faces the camera: the centre of the view shows cluster 1's colour (the depth
+    # test hides the far side), and after painting, cluster 0's
+    assert np.allclose(centre_rgb(), cluster_rgb([1])[0], atol=0.05), centre_rgb()
     win.a_paint.setChecked(True)
     win.brush_spin.setValue(40)
     win.label_combo.setCurrentIndex(0)
@@ -708,10 +727,10 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     assert covered > 0.5, f"the brush covered only {covered:.0%} of the wrong patch"
     shown = win.points.colours
     assert np.allclose(shown[idx, :3], win.points.colours[idx[0], :3])
-    from appfusion.gui.colours import cluster_rgb
 
     assert np.allclose(shown[idx, :3], cluster_rgb([0])[0])
     wait_until(lambda: np.all(win.snapshot.labels[idx] == 0), what="the engine's labels to show the paint")
+    assert np.allclose(centre_rgb(), cluster_rgb([0])[0], atol=0.05), centre_rgb()
     win.a_paint.setChecked(False)
     shoot(win, "painted")
     win.undo_paint()
@@ -726,6 +745,7 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
         _app().processEvents()
         assert not np.allclose(win.points.colours, np.array([0.55, 0.55, 0.55, 1.0]), atol=1e-3), mode
     win.points.gl.setCameraPosition(elevation=25, azimuth=-50, distance=0.5)
+    wait_until(lambda: win._camera_key == win.points.camera_key(), what="the shading to follow the camera")
     shoot(win, "appearance")
 
     job = win.export()

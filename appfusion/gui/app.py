@@ -209,7 +209,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.closing = False
         self.closed_cleanly = False
         self._close_job: Job | None = None
-        self._messages_shown = 0
+        self._last_message: str | None = None
         self.last_error: str | None = None
         self._build()
         self.timer = QtCore.QTimer(self)
@@ -419,7 +419,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.out_dir = Path.cwd() / "appfusion-out" / f"{stem}-{stamp}"
         self.worker = None
         self.snapshot = None
-        self._seq = self._slow_seq = self._messages_shown = 0
+        self._seq = self._slow_seq = 0
+        self._last_message = None
         self.strokes = PaintStrokes()
         self._stages_seen = []
         self.exported = None
@@ -441,7 +442,7 @@ class MainWindow(QtWidgets.QMainWindow):
             # scanning again after a finished scan: from the start of a recording, with a fresh snapshot
             if getattr(self.source, "is_recording", False):
                 self.source.seek(0)
-            self.snapshot, self._seq, self._slow_seq, self._stages_seen, self._messages_shown = None, 0, 0, [], 0
+            self.snapshot, self._seq, self._slow_seq, self._stages_seen, self._last_message = None, 0, 0, [], None
             self.strokes = PaintStrokes()
             self.exported = None
         record = self.record_dir if (self.a_record.isChecked() or self.record_dir) else None
@@ -530,10 +531,15 @@ class MainWindow(QtWidgets.QMainWindow):
     # painting (§5.2 manual refinement)
     # ------------------------------------------------------------------------------------------
     def _on_stroke(self, idx: np.ndarray, label: int) -> None:
-        self.strokes.add(idx, label)
         if self.worker is not None:
-            self.worker.paint(idx, label)
+            try:
+                self.worker.paint(idx, label)
+            except AppFusionError as e:  # e.g. the engine has no points yet
+                self._fail(f"paint: {e}")
+                self._recolour(force=True)
+                return
             self._refresh_after_edit()
+        self.strokes.add(idx, label)
         self._recolour(force=True)
         self.statusBar().showMessage(f"painted {len(idx)} points as cluster {label} ({len(self.strokes)} strokes)")
 
@@ -648,7 +654,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """The window as an image, with the native 3-D view composed in (``QWidget.grab`` leaves it out)."""
         img = self.grab().toImage()
         qp = QtGui.QPainter(img)
-        gl_img = self.points.gl.grabFramebuffer()
+        gl_img = self.points.grab_image()
         pos = self.points.container.mapTo(self, QtCore.QPoint(0, 0))
         qp.drawImage(QtCore.QRect(pos, self.points.container.size()), gl_img)
         qp.end()
@@ -700,9 +706,21 @@ class MainWindow(QtWidgets.QMainWindow):
         if s.stage not in self._stages_seen:
             self._stages_seen.append(s.stage)
         self.streams.update_from(s.last_frame)
-        for m in (s.messages or [])[self._messages_shown:]:
+        self._new_messages(list(s.messages or []))
+
+    def _new_messages(self, msgs: list[str]) -> None:
+        """Show the messages after the last one shown (the engine keeps only its latest ones)."""
+        last = self._last_message
+        start = 0
+        if last is not None:
+            for i in range(len(msgs) - 1, -1, -1):
+                if msgs[i] == last:
+                    start = i + 1
+                    break
+        for m in msgs[start:]:
             self._add_message(m)
-        self._messages_shown = len(s.messages or [])
+        if msgs:
+            self._last_message = msgs[-1]
 
     def _apply_slow(self, s) -> None:
         """Points, environment map, HBSAB and figures (they change slowly; redrawing them is costly)."""

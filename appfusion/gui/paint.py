@@ -97,7 +97,8 @@ def brush_select(points: np.ndarray, mvp: np.ndarray, view: np.ndarray, width: f
         Side of the z-buffer cells (pixels); about twice the on-screen point spacing.
     depth_tol : float, optional
         Depth band (metres) behind a cell's nearest point still counted as the front layer; default
-        2 % of the selected points' depth range plus 2 mm.
+        two cell widths at the brush's depth plus 2 mm, so a surface tilted up to ~63 degrees from the
+        view is painted whole while anything a few centimetres behind it is not.
 
     Returns
     -------
@@ -137,9 +138,12 @@ def brush_select(points: np.ndarray, mvp: np.ndarray, view: np.ndarray, width: f
     zmin = np.full(len(uniq), np.inf)
     np.minimum.at(zmin, inv, cz)
     if depth_tol is None:
-        zs = cz[inside]
-        span = float(zs.max() - zs.min()) if len(zs) else 0.0
-        depth_tol = 0.02 * span + 0.002
+        # a tilted surface's depth changes across a cell: allow two cell widths (in metres at the
+        # brush's depth; slopes up to ~63 degrees) plus 2 mm of noise
+        proj = np.asarray(mvp, np.float64) @ np.linalg.inv(view)
+        f_px = abs(proj[0, 0]) * 0.5 * width
+        z = float(np.median(cz[inside])) if inside.any() else float(np.median(cz))
+        depth_tol = 2.0 * cell_px * z / max(f_px, 1e-9) + 0.002
     front = cz <= zmin[inv] + depth_tol
     return np.sort(cand[inside & front]).astype(np.int64)
 

@@ -316,6 +316,9 @@ def _make_gl_view():
             # item class, which a second, unshared view's context would not know (GL_INVALID_VALUE)
             share = QtGui.QOpenGLContext.globalShareContext()
             super().__init__(share) if share is not None else super().__init__()
+            fmt = QtGui.QSurfaceFormat.defaultFormat()
+            fmt.setDepthBufferSize(24)  # a QOpenGLWindow has none by default: no occlusion between points
+            self.setFormat(fmt)
             self.owner = owner
             self.paints = 0
 
@@ -436,6 +439,14 @@ class PointsView(QtWidgets.QWidget):
         proj = qmatrix_to_numpy(self.gl.projectionMatrix(vp, vp))
         view = qmatrix_to_numpy(self.gl.viewMatrix())
         return proj @ view, view
+
+    def grab_image(self) -> QtGui.QImage:
+        """The 3-D view rendered now with the current camera and colours (for screenshots, tests)."""
+        self.gl.makeCurrent()
+        self.gl.paintGL()  # into the back buffer, which grabFramebuffer reads
+        img = self.gl.grabFramebuffer()
+        self.gl.doneCurrent()
+        return img
 
     def eye(self) -> np.ndarray:
         c = self.gl.cameraPosition()

@@ -153,6 +153,8 @@ class PacedSource(Source):
 
     #: at most this far behind the recording's clock before re-anchoring it (seconds)
     MAX_LAG_S = 0.25
+    #: a gap between two recorded frames longer than this is not slept through (seconds)
+    MAX_GAP_S = 1.0
 
     def __init__(self, inner: Source, realtime: bool = True, recorder: SessionRecorder | None = None):
         super().__init__()
@@ -221,8 +223,8 @@ class PacedSource(Source):
             self._anchor = (now, t)
             return
         due = self._anchor[0] + (t - self._anchor[1])
-        if now - due > self.MAX_LAG_S or t < self._anchor[1]:
-            self._anchor = (now, t)  # paused, slower than real time, or seeked back: no burst
+        if now - due > self.MAX_LAG_S or t < self._anchor[1] or due - now > self.MAX_GAP_S:
+            self._anchor = (now, t)  # paused, slower than real time, seeked, or a gap: no burst, no wait
         elif due > now:
             self._wake.wait(due - now)
 
