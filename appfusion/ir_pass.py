@@ -183,31 +183,34 @@ class IRPass:
         co = (nx * ox + ny * oy + nz * oz) * ilo
         ci = (nx * ix + ny * iy + nz * iz) * idi
         cm = self._cos_max
-        keep = (co > cm) & (ci > cm) & np.isfinite(raw)
-        n_drop = int(len(keep) - np.count_nonzero(keep))
-        if n_drop:
-            sel = np.flatnonzero(keep)
-            pidx, ox, oy, oz, ix, iy, iz, ilo, di, idi, co, ci, raw = (
-                a[sel] for a in (pidx, ox, oy, oz, ix, iy, iz, ilo, di, idi, co, ci, raw))
-        m = len(pidx)
+        keep = (co > cm) & (ci > cm)
+        if not np.isfinite(raw).all():
+            keep &= np.isfinite(raw)
+            raw = np.where(keep, raw, f32(0.0))
+        m = int(np.count_nonzero(keep))
+        n_drop = len(keep) - m
         if m == 0:
             self._count(0, 0, n_drop, t0)
             return 0
+        w = co * keep                      # dropped samples keep weight 0 (cheaper than compacting)
+        if n_drop:
+            ci = np.maximum(ci, cm)        # keeps their arithmetic finite
+            co = np.maximum(co, cm)
         # world half vector (unnormalised sum of unit vectors), then its local x, y; local z = ci + co
         hx = ox * ilo + ix * idi
         hy = oy * ilo + iy * idi
         hz = oz * ilo + iz * idi
         hlx = Nf[0][pidx] * hx + Nf[1][pidx] * hy + Nf[2][pidx] * hz
         hly = Nf[3][pidx] * hx + Nf[4][pidx] * hy + Nf[5][pidx] * hz
-        satv = f32(self.profile.saturation)
-        sat = raw >= satv
+        sat = raw >= f32(self.profile.saturation)
         n_sat = int(np.count_nonzero(sat))
+        if n_sat and n_drop:
+            sat &= keep
+            n_sat = int(np.count_nonzero(sat))
+        value = self.profile.apply_valid(raw, di, ci)           # clips raw at saturation
+        s = _channels(hlx, hly, ci + co, ci, co, value, w, self.cut.n)
         if n_sat:
-            raw = np.where(sat, satv, raw)
-        value = self.profile.apply_valid(raw, di, ci)
-        s = _channels(hlx, hly, ci + co, ci, co, value, co, self.cut.n)
-        if n_sat:
-            s.channels[CH_SAT] = np.where(sat, co, f32(0.0))
+            s.channels[CH_SAT] = w * sat
         self.cut.leaves.add(self._leaf_key[pidx] + s.texel, s.channels)
         self._count(m, n_sat, n_drop, t0)
         return m
