@@ -61,12 +61,13 @@ class EnvMap:
     radiance : (2, N, N, 3) float32 ndarray
         Linear RGB radiance per texel, in units of the reference white of §4.2 (a white circle = 1),
         divided by the mirror's reflectance. 0 where neither measured nor filled.
-    weight : (2, N, N) float32 ndarray
-        Sum of sample weights ``w_o . n`` per texel (0 = never seen).
-    coverage : (2, N, N) bool ndarray
-        Texels measured (weight above the threshold used when the map was made).
-    filled : (2, N, N) bool ndarray
+    weight : (2, N, N) float32 ndarray, optional
+        Sum of sample weights ``w_o . n`` per texel (0 = never seen). Default: 1 where measured.
+    coverage : (2, N, N) bool ndarray, optional
+        Texels measured (weight above the threshold used when the map was made). Default: all.
+    filled : (2, N, N) bool ndarray, optional
         Texels whose radiance was filled in (inpainted), not measured. Never overlaps ``coverage``.
+        Default: none.
     frame : str
         Frame of the directions: ``"marker"`` (world of the scan) unless loaded from elsewhere.
     meta : dict
@@ -74,9 +75,9 @@ class EnvMap:
     """
 
     radiance: np.ndarray
-    weight: np.ndarray
-    coverage: np.ndarray
-    filled: np.ndarray
+    weight: np.ndarray | None = None
+    coverage: np.ndarray | None = None
+    filled: np.ndarray | None = None
     frame: str = "marker"
     meta: dict[str, Any] = field(default_factory=dict)
 
@@ -86,6 +87,12 @@ class EnvMap:
         if r.ndim != 4 or r.shape[0] != 2 or r.shape[1] != r.shape[2] or r.shape[3] != 3 or r.shape[1] < 2:
             raise AppFusionError(f"environment map radiance must have shape (2, N, N, 3), got {r.shape}")
         shp = r.shape[:3]
+        if self.coverage is None:
+            self.coverage = np.ones(shp, bool) if self.filled is None else ~np.asarray(self.filled, bool)
+        if self.filled is None:
+            self.filled = np.zeros(shp, bool)
+        if self.weight is None:
+            self.weight = np.asarray(self.coverage, np.float32)
         self.weight = np.asarray(self.weight, dtype=np.float32)
         self.coverage = np.asarray(self.coverage, dtype=bool)
         self.filled = np.asarray(self.filled, dtype=bool)

@@ -254,6 +254,14 @@ def test_fill_unknown_method():
         em.fill("magic")
 
 
+def test_envmap_defaults_for_a_bare_radiance_array():
+    rad = gt_map(8, sub=2).astype(np.float32)
+    em = EnvMap(rad)
+    assert em.coverage.all() and not em.filled.any() and (em.weight == 1).all() and em.frame == "marker"
+    assert em.coverage_fraction() == pytest.approx(1.0)
+    assert np.allclose(em.energy(), (rad * em.solid_angles()[..., None]).sum(axis=(0, 1, 2)))
+
+
 def test_envmap_validation():
     z = np.zeros((2, 8, 8, 3), np.float32)
     m = np.zeros((2, 8, 8), bool)
