@@ -85,6 +85,7 @@ class LightingPass:
         self.n_rgb_frames = 0
         self.n_skipped_frames = 0     # RGB frames skipped because per-frame centring found no ball
         self._pending: list[tuple[np.ndarray, Intrinsics, np.ndarray, np.ndarray | None]] = []
+        self._last_depth: np.ndarray | None = None
 
     # -- geometry ---------------------------------------------------------------------------------
     def add_depth(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, box: Any = None) -> int:
@@ -104,6 +105,7 @@ class LightingPass:
         pts = points_from_depth(depth, intrinsics, pose, box if box is not None else self.box, self.depth_stride)
         self.points.add(pts)
         self.n_depth_frames += 1
+        self._last_depth = depth        # add_frame does not add the same image twice
         return len(pts)
 
     def fit(self) -> SphereFit:
@@ -183,7 +185,8 @@ class LightingPass:
 
     def add_frame(self, frame: Frame, pose: np.ndarray | None = None, rgb_linear: np.ndarray | None = None,
                   mask: np.ndarray | None = None) -> None:
-        """Feed a whole frame: its depth (until the sphere is fitted) and its RGB.
+        """Feed a whole frame: its depth (until the sphere is fitted; not again if that very image was just
+        given to :meth:`add_depth`) and its RGB.
 
         Parameters
         ----------
@@ -199,7 +202,7 @@ class LightingPass:
         pose = frame.pose if pose is None else pose
         if pose is None:
             raise AppFusionError(f"lighting pass: frame {frame.index} has no pose (track it first)")
-        if frame.depth is not None and self.sphere is None:
+        if frame.depth is not None and self.sphere is None and frame.depth is not self._last_depth:
             if frame.depth_intrinsics is None:
                 raise AppFusionError(f"lighting pass: frame {frame.index} has depth but no depth intrinsics")
             self.add_depth(frame.depth, frame.depth_intrinsics, pose)

@@ -416,6 +416,8 @@ def test_add_frame_holds_rgb_until_fit():
         fr = Frame(index=i, timestamp=i / 30, depth=render_depth(p, seed=i), rgb=render_rgb(prgb, seed=i),
                    rgb_encoding="linear", depth_intrinsics=INTR, rgb_intrinsics=INTR, depth_to_rgb=DEPTH_TO_RGB,
                    pose=p)
+        if i == 0:
+            lp.add_depth(fr.depth, INTR, p)           # the same image through both doors counts once
         lp.add_frame(fr)
     assert lp.n_depth_frames == 4 and lp.n_rgb_frames == 0
     fit = lp.fit()
