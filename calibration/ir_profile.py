@@ -289,14 +289,16 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def depth_normals(P: np.ndarray) -> np.ndarray:
-    """Unit normals (H, W, 3) of a camera-frame point image (H, W, 3) by central differences,
-    oriented towards the camera; NaN where a neighbour is missing."""
+def depth_normals(P: np.ndarray, step: int = 3) -> np.ndarray:
+    """Unit normals (H, W, 3) of a camera-frame point image (H, W, 3) by central differences over
+    ``step`` pixels each side (a wide baseline: 1/cos of a normal tilted by depth noise is biased
+    high), oriented towards the camera; NaN where a neighbour is missing."""
     P = np.asarray(P, dtype=np.float32)
+    s = int(step)
     dx = np.full_like(P, np.nan)
     dy = np.full_like(P, np.nan)
-    dx[:, 1:-1] = P[:, 2:] - P[:, :-2]
-    dy[1:-1] = P[2:] - P[:-2]
+    dx[:, s:-s] = P[:, 2 * s:] - P[:, :-2 * s]
+    dy[s:-s] = P[2 * s:] - P[:-2 * s]
     n = np.cross(dx, dy)
     with np.errstate(invalid="ignore", divide="ignore"):
         n /= np.linalg.norm(n, axis=-1, keepdims=True)
