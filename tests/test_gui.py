@@ -674,10 +674,13 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     wait_until(lambda: win.stats.total_ticks > ticks + 10, what="ticks while paused")
     assert win.worker.box.get()[0] <= seq + 1  # the engine waits
     win.resume()
-    wait_until(lambda: win.snapshot.stage == "ir", what=lambda: f"ir stage (worker: {win.worker.status()}, "
-               f"stage {win.snapshot.stage})")
+    wait_until(lambda: win.snapshot.stage == "ir" and win.snapshot.frame >= 30 or win.snapshot.stage == "rgb",
+               what=lambda: f"late ir stage (worker: {win.worker.status()}, stage {win.snapshot.stage})")
+    win.pause()  # hold the scan for a screenshot with every view filled in
+    wait_until(lambda: win._slow_seq == win._seq and np.isfinite(win.hbsab.coverage), what="the slow views")
     assert win.points.positions is not None and len(win.points.positions) == 4000
     shoot(win, "scanning")
+    win.resume()
     wait_until(lambda: win.worker.state == "finished" and win.snapshot.stage == "done"
                and "Recording finished" in win.banner.text(), what="the recording to end")
     rate = win.stats.busy_rate()
@@ -750,6 +753,14 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
 
     job = win.export()
     wait_until(lambda: win.exported is not None, what="the export")
+    # render from the 3-D view's camera: the sphere in the middle of the picture, background around
+    rj = win.render_view(size=(96, 72), spp=4)
+    wait_until(lambda: bool(win.rendered) or (rj.done.is_set() and rj.error), timeout=40, what="the render")
+    assert rj.error is None and win.rendered[0].exists()
+    img = rj.result["image"]
+    assert img.shape == (72, 96, 3)
+    bg = np.array([24, 24, 30])
+    assert not np.allclose(img[36, 48], bg) and np.allclose(img[2, 2], bg)
     res = ScanResult.load(tmp_path / "out" / "result.npz")
     assert len(idx2) and np.all(res.labels[idx2] == 0) and len(res.labels) == 4000
     assert np.all(res.labels[np.setdiff1d(r.wrong, idx2)] == 1)  # the undone stroke is not in the export

@@ -466,6 +466,9 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         if w.state == "running":
             w.pause()
+        elif w.source.error is not None:  # the engine goes on with the frames it has
+            self._set_banner(f"Source lost - {w.source.error}. Processing the {frames} frames received so far; "
+                             "the scan is kept.", "error")
         elif w.state == "paused":
             w.resume()
         self._update_state()
@@ -870,6 +873,9 @@ class MainWindow(QtWidgets.QMainWindow):
             self._set_banner(f"Engine error - {w.error}. What was computed so far can still be exported.", "error")
         elif w.state == "stopping":
             self._set_banner("Stopping: keeping everything computed so far ...", "warn")
+        elif w.state == "stopped" and w.result is None:
+            self._set_banner(f"Stopped after {frames} frames, before there was anything to keep "
+                             f"({w.note or 'no geometry yet'}). Start again to scan.", "warn")
         elif w.state == "stopped":
             self._set_banner(f"Stopped after {frames} frames. Paint clusters if needed, then Export "
                              f"(to {self.out_dir}).", "ok")
@@ -877,6 +883,9 @@ class MainWindow(QtWidgets.QMainWindow):
             what = "Recording finished" if not w.is_live else "Device stream ended"
             self._set_banner(f"{what}: {frames} frames scanned. Paint clusters if needed, then Export "
                              f"(to {self.out_dir}).", "ok")
+        elif w.source.error is not None:  # the engine goes on with the frames it has
+            self._set_banner(f"Source lost - {w.source.error}. Processing the {frames} frames received so far; "
+                             "the scan is kept.", "error")
         elif w.state == "paused":
             self._set_banner("Paused - Resume to continue. Export keeps what is computed so far.", "warn")
         elif s is not None and s.tracking == "lost":

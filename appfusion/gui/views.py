@@ -118,7 +118,7 @@ class HBSABView(pg.GraphicsLayoutWidget):
         super().__init__(parent)
         self.setBackground((20, 20, 24))
         self.cluster = 0
-        self.vb_m, self.img_m, self.lab_m = _image_box(self, "HBSAB: none yet", 0, 0)
+        self.vb_m, self.img_m, self.lab_m = _image_box(self, "HBSAB", 0, 0)
         self.vb_f, self.img_f, self.lab_f = _image_box(self, "Ward fit", 0, 1)
         lut = pg.colormap.get("viridis").getLookupTable(nPts=256)
         self.img_m.setLookupTable(lut)

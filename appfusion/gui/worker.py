@@ -28,7 +28,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from ..errors import AppFusionError, DeviceError, SourceError
+from ..errors import AppFusionError, DeviceError, PassMissingError, SourceError
 from ..source import Source
 
 #: worker states, as the GUI shows them
@@ -317,6 +317,7 @@ class ScanWorker:
         self.runner = None
         self.state = "idle"
         self.error: str | None = None
+        self.note: str | None = None
         self.result = None
         self.thread: threading.Thread | None = None
         self.finished = threading.Event()
@@ -372,6 +373,9 @@ class ScanWorker:
                 kind = "device" if isinstance(src_err, DeviceError) else "source"
                 self.error = f"{kind} error: {src_err}"
                 self.state = "source-error"
+            elif err is not None and self._stop_asked and isinstance(err, PassMissingError):
+                self.note = f"stopped before there was a result: {err}"  # nothing computed yet: no error
+                self.state = "stopped"
             elif err is not None:
                 self.error = f"{type(err).__name__}: {err}" if not isinstance(err, AppFusionError) else str(err)
                 self.state = "error"
@@ -445,7 +449,7 @@ class ScanWorker:
 
     def status(self) -> dict[str, Any]:
         """A JSON-able summary (written beside exports as ``gui-session.json``)."""
-        return {"state": self.state, "error": self.error, "frames_delivered": self.source.frames,
+        return {"state": self.state, "error": self.error, "note": self.note, "frames_delivered": self.source.frames,
                 "source": str(self.source.name), "source_ended": self.source.ended,
                 "recorded_frames": None if self.recorder is None else self.recorder.frames,
                 "recording_error": None if self.recorder is None else self.recorder.error,
