@@ -48,6 +48,14 @@ reduce the chi-square by at least the factor ``split_gain`` (``chi2_k / chi2_{k+
 So one material gives ``k = 1`` when the spread of its nodes is within the noise, and a second material
 is only split off when it explains much more of the spread.
 
+Refinements (beyond the paper)
+------------------------------
+*Leaf refinement*: after clustering, a leaf whose own HBSAB prefers another centre by at least
+``leaf_margin`` in chi-square moves there (cut nodes may straddle a material boundary, their leaves
+need not). *Interior-leaf fits*: a cluster's Ward fit uses only its interior leaves (the leaf's points
+and its ``interior_k`` nearest leaves all carry the label) when these hold at least
+``interior_min_fraction`` of its weight, since boundary leaves mix two lobes.
+
 Output
 ------
 :meth:`BRDFCut.result` gives per-point labels, the merged HBSAB of each cluster (the leaves' buffers

@@ -138,6 +138,20 @@ class IRPass:
         self.stats["registered"] += len(pix)
         return self._add(pts, X[0], X[1], X[2], raw, t, emitter_world)
 
+    def add(self, frame, emitter_position=None) -> int:
+        """Add a :class:`appfusion.frame.Frame` (needs ``ir``, ``depth``, depth intrinsics and ``pose``).
+
+        Frames without IR or depth (e.g. of an RGB pass) add nothing and return 0.
+        """
+        if frame.ir is None or frame.depth is None:
+            return 0
+        intr = frame.depth_intrinsics or frame.ir_intrinsics
+        if intr is None:
+            raise AppFusionError(f"IR pass, frame {frame.index}: no depth intrinsics")
+        if frame.pose is None:
+            raise AppFusionError(f"IR pass, frame {frame.index}: no camera pose (track the frame first)")
+        return self.add_frame(frame.ir, frame.depth, intr, frame.pose, emitter_position)
+
     def add_samples(self, point_idx: np.ndarray, points: np.ndarray, camera_center, emitter_center,
                     raw: np.ndarray) -> int:
         """Add registered pixels (steps 2-4 of the module docstring); the per-frame hot path.

@@ -189,3 +189,18 @@ def test_ir_pass_input_errors():
     with pytest.raises(AppFusionError, match="point indices"):
         ip.add_samples(np.zeros(3, int), np.zeros((2, 3)), (0, 0, 1), (0, 0, 1), np.zeros(3))
     assert ip.add_frame(np.zeros(K.shape), np.full(K.shape, np.nan), K, np.eye(4)) == 0
+
+
+def test_ir_pass_takes_frames():
+    from appfusion.frame import Frame
+
+    sc, P, N, truth = S.two_material_sphere(seed=6, n_points=2000, one_material=True)
+    ip = IRPass(P, N, sc.profile(), min_leaf=32)
+    T = S.orbit_poses(sc.center, 0.5, per_ring=1, elevations_deg=(30,))[0]
+    ir, depth = sc.render(T)
+    f = Frame(0, 0.0, depth=depth, ir=ir, depth_intrinsics=sc.intrinsics, pose=T, pass_name="geometry")
+    n = ip.add(f)
+    assert n > 1000 and ip.stats["used"] == n
+    assert ip.add(f.replace(ir=None)) == 0
+    with pytest.raises(AppFusionError, match="no camera pose"):
+        ip.add(f.replace(pose=None))
