@@ -870,7 +870,9 @@ class MainWindow(QtWidgets.QMainWindow):
                              "or reconnect the device and start again.", "error")
         elif w.state == "error":
             self.last_error = w.error
-            self._set_banner(f"Engine error - {w.error}. What was computed so far can still be exported.", "error")
+            kept = ("What was computed so far can still be exported." if w.result is not None
+                    else "Nothing had been computed yet; the output folder keeps the engine's checkpoints.")
+            self._set_banner(f"Engine error - {w.error}. {kept}", "error")
         elif w.state == "stopping":
             self._set_banner("Stopping: keeping everything computed so far ...", "warn")
         elif w.state == "stopped" and w.result is None:
