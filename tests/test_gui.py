@@ -417,9 +417,9 @@ class _Recording(Source):
     is_recording = True
     name = "fake recording"
 
-    def __init__(self, n, dt):
+    def __init__(self, n, dt, gap_at=None, gap_s=0.0):
         super().__init__()
-        self.n, self.dt, self.pos = n, dt, 0
+        self.n, self.dt, self.pos, self.gap_at, self.gap_s = n, dt, 0, gap_at, gap_s
 
     caps = StreamCaps.all_together({"depth"})
 
@@ -438,7 +438,8 @@ class _Recording(Source):
     def _frames(self):
         while self.pos < self.n:
             self.pos += 1
-            yield Frame(self.pos - 1, 5.0 + (self.pos - 1) * self.dt)
+            i = self.pos - 1
+            yield Frame(i, 5.0 + i * self.dt + (self.gap_s if self.gap_at is not None and i >= self.gap_at else 0))
 
 
 def test_paced_source_realtime_and_fast():
@@ -458,6 +459,10 @@ def test_paced_source_realtime_and_fast():
     assert np.all(gaps[7:] >= 0.015), "frames after a pause were delivered in a burst"
     assert src.frames == 16 and src.ended and src.error is None
     assert len(src) == 16 and src.is_recording  # forwarded
+    # a 30 s hole in a recording is not slept through; the frames around it keep their pace
+    t = time.monotonic()
+    assert len(list(PacedSource(_Recording(10, 0.02, gap_at=5, gap_s=30.0), realtime=True))) == 10
+    assert 8 * 0.02 * 0.9 <= time.monotonic() - t < 2.0
 
 
 def test_worker_keeps_scan_when_device_fails(tmp_path):
