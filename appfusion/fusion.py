@@ -1,0 +1,683 @@
+"""KinectFusion-style tracking and TSDF fusion on Open3D's tensor VoxelBlockGrid (paper §4.1).
+
+The paper acquires geometry "directly ... using KinectFusion" [Izadi et al. 2011]: each depth frame is
+tracked against a ray cast of the fused model (frame-to-model, projective point-to-plane ICP) and
+then integrated into a truncated signed distance volume. This module does the same with Open3D 0.19:
+
+- the volume is a :class:`open3d.t.geometry.VoxelBlockGrid` (``tsdf``, ``weight``) with voxels of
+  ``voxel_size`` (default 4 mm, :func:`voxel_size_for_box` scales it with the object box);
+- integration runs on the depth image downsampled to ``integrate_width`` (2 x 2 block means of valid
+  pixels; default 320 px), tracking on a further 2 x downsampled image (``track_width``, 160 px)
+  against a ray cast of the model at the last pose, with Open3D's multi-scale point-to-plane
+  odometry (``o3d.t.pipelines.odometry``) initialised by a constant-velocity prediction;
+- every tracked frame is checked (overlap with the model, inlier fraction, point-to-plane RMSE and
+  the pose jump against the prediction); a frame that fails is reported ``lost``, not integrated,
+  and the next frames are tracked again from the last good pose with a wider association distance
+  until one passes ("relocalisation against the model");
+- a region of interest (the object box of :mod:`appfusion.markers`, grown by a margin) can restrict
+  integration once the markers are known, which keeps both the volume and the time per frame small.
+
+Why the tensor VoxelBlockGrid and not the legacy ScalableTSDFVolume: both integrate in about the
+same time at equal voxel size and truncation, but only the VoxelBlockGrid ray casts its model, which
+frame-to-model tracking needs; see ``docs/geometry-pass.md`` for the measured numbers.
+
+Poses are camera-to-world 4x4 matrices of the depth camera. The fusion's world frame is the frame
+of ``initial_pose`` (the first camera by default); :mod:`appfusion.geometry_pass` re-expresses
+everything in the marker frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from .errors import AppFusionError
+from .frame import Intrinsics, invert_pose
+
+__all__ = ["FusionConfig", "TrackResult", "TSDFFusion", "downsample_depth", "voxel_size_for_box",
+           "rotation_angle_deg"]
+
+o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+
+STATE_OK = "ok"
+STATE_LOST = "lost"
+STATE_FIRST = "first"
+
+
+def _twist_to_pose(xi: np.ndarray) -> np.ndarray:
+    """4x4 rigid transform of a twist (omega (3,), tau (3,)): Rodrigues rotation, translation tau."""
+    w, t = xi[:3], xi[3:]
+    th = np.linalg.norm(w)
+    Kx = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if th < 1e-12:
+        R = np.eye(3) + Kx
+    else:
+        R = np.eye(3) + np.sin(th) / th * Kx + (1 - np.cos(th)) / th ** 2 * Kx @ Kx
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def vertex_normals(depth: np.ndarray, K: Intrinsics, max_jump: float = 0.02, smooth_px: float = 2.0) -> np.ndarray:
+    """Camera-frame unit normals of a depth image (KinectFusion's normal map), facing the camera.
+
+    The depth is first smoothed with a NaN-aware Gaussian of ``smooth_px`` pixels (pixels that the
+    smoothing moves by more than ``max_jump / 2`` sit at a discontinuity and get no normal), then the
+    normal is the cross product of the central differences of the vertex map. Smooth normals matter
+    for projective point-to-plane ICP: noisy ones pin the pose where the projective associations are.
+
+    Parameters
+    ----------
+    depth : (H, W) float array, metres, NaN invalid.
+    K : Intrinsics of the image.
+    max_jump : float
+        A pixel whose 4-neighbours differ from it in depth by more gets no normal, metres.
+    smooth_px : float
+        Gaussian sigma in pixels (0: no smoothing).
+
+    Returns
+    -------
+    (H, W, 3) float32, NaN where there is no normal.
+    """
+    depth = np.asarray(depth, np.float32)
+    valid = np.isfinite(depth)
+    if smooth_px > 0:
+        k = 2 * int(np.ceil(2 * smooth_px)) + 1
+        num = cv2.GaussianBlur(np.where(valid, depth, 0).astype(np.float32), (k, k), smooth_px)
+        den = cv2.GaussianBlur(valid.astype(np.float32), (k, k), smooth_px)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sm = num / den
+            sm[~valid | (np.abs(sm - depth) > max_jump / 2)] = np.nan
+        depth = sm
+    V = K.backproject(depth)
+    N = np.full(V.shape, np.nan, np.float32)
+    dx = V[1:-1, 2:] - V[1:-1, :-2]
+    dy = V[2:, 1:-1] - V[:-2, 1:-1]
+    n = np.cross(dx, dy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        z = depth[1:-1, 1:-1]
+        jump = np.maximum.reduce([np.abs(depth[1:-1, 2:] - z), np.abs(depth[1:-1, :-2] - z),
+                                  np.abs(depth[2:, 1:-1] - z), np.abs(depth[:-2, 1:-1] - z)])
+        n[~(jump <= max_jump)] = np.nan
+        flip = np.einsum("hwc,hwc->hw", n, V[1:-1, 1:-1]) > 0
+    n[flip] *= -1
+    N[1:-1, 1:-1] = n
+    return N
+
+
+def _normal_space_weights(normals: np.ndarray, bins: int = 6, cap: float = 20.0) -> np.ndarray:
+    """Weights that even out the distribution of normal directions (normal-space sampling,
+    Rusinkiewicz & Levoy 2001, as weights): ``1 / count`` of the normal's cell on a
+    ``bins^3`` grid over [-1, 1]^3, scaled to mean 1 and capped at ``cap`` x the smallest."""
+    cell = np.clip(((normals + 1.0) * (bins / 2.0)).astype(np.int64), 0, bins - 1)
+    key = (cell[:, 0] * bins + cell[:, 1]) * bins + cell[:, 2]
+    counts = np.bincount(key, minlength=bins ** 3)[key].astype(np.float64)
+    w = 1.0 / counts
+    w = np.minimum(w, cap * w.min())
+    return w * (len(w) / w.sum())
+
+
+def voxel_size_for_box(side_m: float, height_m: float = 0.30) -> float:
+    """TSDF voxel edge for an object box: 4 mm for a 30 cm box, proportional, clipped to [2, 12] mm.
+
+    Parameters
+    ----------
+    side_m, height_m : float
+        Box side (the marker square) and height, metres.
+    """
+    size = max(float(side_m), float(height_m))
+    if not np.isfinite(size) or size <= 0:
+        raise AppFusionError(f"voxel_size_for_box: box size must be positive, got side={side_m}, height={height_m}")
+    return float(np.clip(0.004 * size / 0.30, 0.002, 0.012))
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a 3x3 rotation matrix, degrees."""
+    c = (np.trace(R[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def downsample_depth(depth: np.ndarray, factor: int, max_jump: float = 0.03) -> np.ndarray:
+    """Downsample a depth image by an integer factor with block means of valid pixels.
+
+    A block is invalid (NaN) when fewer than half of its pixels are valid or when its valid depths
+    span more than ``max_jump`` metres (a depth discontinuity: averaging would invent a surface).
+    The block centre sits at ``(f * i + (f - 1) / 2)`` of the input, matching
+    :meth:`Intrinsics.scaled`.
+
+    Parameters
+    ----------
+    depth : (H, W) float array, metres, NaN invalid.
+    factor : int >= 1
+    max_jump : float, metres.
+
+    Returns
+    -------
+    (H // factor, W // factor) float32 array.
+    """
+    f = int(factor)
+    if f == 1:
+        return np.asarray(depth, np.float32)
+    H, W = depth.shape
+    h, w = H // f, W // f
+    b = np.asarray(depth[: h * f, : w * f], np.float32).reshape(h, f, w, f)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(b)
+        n = valid.sum(axis=(1, 3))
+        s = np.where(valid, b, 0).sum(axis=(1, 3))
+        mx = np.where(valid, b, -np.inf).max(axis=(1, 3))
+        mn = np.where(valid, b, np.inf).min(axis=(1, 3))
+        out = s / np.maximum(n, 1)
+        out[(2 * n < f * f) | (mx - mn > max_jump)] = np.nan
+    return out.astype(np.float32)
+
+
+@dataclass
+class FusionConfig:
+    """Settings of :class:`TSDFFusion` (metres unless stated).
+
+    Attributes
+    ----------
+    voxel_size : float
+        TSDF voxel edge (default 4 mm, for a ~30 cm object box).
+    trunc_voxels : float
+        Truncation distance in voxels (sdf_trunc = trunc_voxels * voxel_size).
+    depth_min, depth_max : float
+        Depth range used for integration and tracking.
+    integrate_width : int
+        Width the depth image is downsampled to (integer factor) before integration.
+    track_width : int
+        Width of the finest tracking level (an integer factor below ``integrate_width``).
+    track_iterations : tuple of int
+        Gauss-Newton iterations per pyramid level, coarsest first.
+    depth_diff : float
+        Projective association distance of tracking.
+    relocalise_depth_diff : float
+        Association distance while relocalising after a loss.
+    min_overlap : float
+        Lost if fewer than this fraction of the frame's valid (ROI) pixels land on the model.
+    min_inliers : float
+        Lost if fewer than this fraction of the overlapping pixels agree with the model within
+        ``inlier_dist``.
+    inlier_dist : float
+        Point-to-plane distance of an inlier.
+    normal_cos : float
+        An association is dropped when source and model normals differ by more (cosine).
+    max_rmse : float
+        Lost if the inliers' point-to-plane RMSE is larger.
+    max_jump_m, max_jump_deg : float
+        Lost if the tracked pose differs from the prediction by more (per frame).
+    block_resolution, block_count : int
+        VoxelBlockGrid block edge (voxels) and initial block capacity.
+    weight_threshold : float
+        Minimum TSDF weight of a surface in ray casts and extraction.
+    """
+
+    voxel_size: float = 0.004
+    trunc_voxels: float = 4.0
+    depth_min: float = 0.15
+    depth_max: float = 1.6
+    integrate_width: int = 320
+    track_width: int = 160
+    track_iterations: tuple[int, ...] = (8, 6)
+    depth_diff: float = 0.04
+    relocalise_depth_diff: float = 0.10
+    min_overlap: float = 0.35
+    min_inliers: float = 0.6
+    inlier_dist: float = 0.01
+    max_rmse: float = 0.006
+    normal_cos: float = 0.8
+    icp_normals: str = "target"
+    normal_space_weighting: bool = True
+    normal_smooth_px: float = 1.0
+    max_jump_m: float = 0.08
+    max_jump_deg: float = 12.0
+    block_resolution: int = 8
+    block_count: int = 20000
+    weight_threshold: float = 2.0
+
+
+@dataclass
+class TrackResult:
+    """What tracking said about one frame (the state the GUI shows).
+
+    Attributes
+    ----------
+    index : int
+        Frame counter of the fusion (0-based, frames given to :meth:`TSDFFusion.process`).
+    state : {"first", "ok", "lost"}
+    pose : (4, 4) ndarray
+        Camera-to-world pose of the depth camera: the tracked pose when ``ok``, the last good pose
+        when ``lost``.
+    overlap, inlier_fraction : float
+        Tracking quality (see :class:`FusionConfig`); 1.0 for the first frame.
+    rmse : float
+        Point-to-plane RMSE of the inliers, metres.
+    integrated : bool
+        Whether the frame was fused into the volume.
+    reason : str
+        Why the frame is lost ("" when ok).
+    ms : dict
+        Milliseconds spent per step ("prep", "raycast", "track", "integrate").
+    """
+
+    index: int
+    state: str
+    pose: np.ndarray
+    overlap: float = 1.0
+    inlier_fraction: float = 1.0
+    rmse: float = 0.0
+    integrated: bool = False
+    reason: str = ""
+    ms: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.state != STATE_LOST
+
+
+class TSDFFusion:
+    """Frame-to-model tracking and TSDF fusion of a depth stream (paper §4.1, KinectFusion).
+
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+        Of the input depth images.
+    config : FusionConfig, optional
+    initial_pose : (4, 4) array, optional
+        Camera-to-world pose of the first frame (default identity: the first camera is the world).
+    """
+
+    def __init__(self, intrinsics: Intrinsics, config: FusionConfig | None = None,
+                 initial_pose: np.ndarray | None = None):
+        self.config = cfg = config or FusionConfig()
+        if not (cfg.voxel_size > 0 and cfg.trunc_voxels > 0 and cfg.depth_max > cfg.depth_min >= 0):
+            raise AppFusionError(f"fusion: invalid configuration {cfg}")
+        self.intrinsics = intrinsics
+        self.f_int = max(1, int(round(intrinsics.width / cfg.integrate_width)))
+        self.K_int = intrinsics.scaled(intrinsics.width // self.f_int, intrinsics.height // self.f_int)
+        self.f_trk = max(1, int(round(self.K_int.width / cfg.track_width)))
+        self.K_trk = self.K_int.scaled(self.K_int.width // self.f_trk, self.K_int.height // self.f_trk)
+        self._dev = o3d.core.Device("CPU:0")
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(
+            ["tsdf", "weight"], [o3d.core.float32, o3d.core.float32], [[1], [1]],
+            cfg.voxel_size, cfg.block_resolution, cfg.block_count, self._dev)
+        self._Kt_int = o3d.core.Tensor(self.K_int.K)
+        # Open3D's TSDF integration kernel truncates the projected (u, v) to pick a pixel, i.e. it reads
+        # the pixel up to one pixel left/up of the projection (a systematic ~1 mm bias at 320 px); with
+        # the principal point moved by +0.5 px it reads the nearest pixel.
+        Kr = self.K_int.K.copy()
+        Kr[0, 2] += 0.5
+        Kr[1, 2] += 0.5
+        self._Kt_int_round = o3d.core.Tensor(Kr)
+        self.pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, float).copy()
+        self._last_good = self.pose.copy()
+        self._velocity = np.eye(4)           # last frame-to-frame motion (camera-to-camera)
+        self._frustum_blocks = None
+        self._n_integrated = 0
+        self.n_frames = 0
+        self.lost = False
+        self.roi = None                      # (world_to_roi 4x4, lo (3,), hi (3,))
+        self.results: list[TrackResult] = []
+        self._rays_int = self.K_int.rays().astype(np.float32)
+        self._warm_up_raycaster()
+
+    def _warm_up_raycaster(self, n_blocks: int = 8192) -> None:
+        """Grow Open3D's ray-cast range-map buffer before the first real ray cast.
+
+        Open3D 0.19's CPU ray caster sizes its range-map fragment buffer on demand: a call that needs
+        more fragments than allocated returns an incomplete range map (missing and wrong hits) and
+        only grows the buffer for the next call. Ray casting ``n_blocks`` temporary blocks placed
+        far away once allocates enough; the blocks are erased again.
+        """
+        side = int(np.sqrt(n_blocks / 2))
+        g = np.stack(np.meshgrid(np.arange(-side // 2, side - side // 2), np.arange(-side // 2, side - side // 2),
+                                 np.arange(100000, 100002), indexing="ij"), -1).reshape(-1, 3).astype(np.int32)
+        keys = o3d.core.Tensor(g)
+        hm = self.vbg.hashmap()
+        if hm.capacity() < len(g) + 16:
+            return
+        hm.activate(keys)
+        K = self.K_int
+        far = 100000 * self.config.voxel_size * self.config.block_resolution
+        self.vbg.ray_cast(keys, o3d.core.Tensor(K.K), o3d.core.Tensor(np.eye(4)), K.width, K.height, ["depth"],
+                          1.0, 0.1, 2 * far, 0.5, self.config.trunc_voxels)
+        hm.erase(keys)
+
+    # -- region of interest ----------------------------------------------------------------------
+    def set_roi(self, world_to_roi: np.ndarray, lo, hi) -> None:
+        """Integrate and track only depth points inside an axis-aligned box of another frame.
+
+        Parameters
+        ----------
+        world_to_roi : (4, 4) array
+            Maps fusion-world points into the box's frame (e.g. world -> marker frame).
+        lo, hi : (3,) array-like
+            Box corners in that frame, metres.
+        """
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(hi > lo):
+            raise AppFusionError(f"fusion: region of interest needs lo < hi (3 values each), got {lo}, {hi}")
+        self.roi = (np.asarray(world_to_roi, float).copy(), lo, hi)
+
+    def _mask_roi(self, d: np.ndarray, K: Intrinsics, pose: np.ndarray) -> np.ndarray:
+        if self.roi is None:
+            return d
+        M, lo, hi = self.roi
+        T = M @ pose
+        rays = self._rays_int if K is self.K_int else K.rays().astype(np.float32)
+        with np.errstate(invalid="ignore"):
+            keep = np.ones(d.shape, bool)
+            for a in range(3):
+                c = (rays @ T[a, :3].astype(np.float32)) * d + np.float32(T[a, 3])
+                keep &= (c >= lo[a]) & (c <= hi[a])
+        return np.where(keep, d, np.nan).astype(np.float32)
+
+    # -- steps -----------------------------------------------------------------------------------
+    def _o3d_depth(self, d: np.ndarray) -> o3d.t.geometry.Image:
+        d = np.where(np.isfinite(d) & (d > self.config.depth_min) & (d < self.config.depth_max), d, 0.0)
+        return o3d.t.geometry.Image(np.ascontiguousarray(d, dtype=np.float32))
+
+    def integrate(self, depth_int: np.ndarray, pose: np.ndarray) -> None:
+        """Fuse a depth image at integration resolution (``K_int``) seen from ``pose`` (camera-to-world)."""
+        cfg = self.config
+        img = self._o3d_depth(depth_int)
+        ext = o3d.core.Tensor(invert_pose(pose))
+        blocks = self.vbg.compute_unique_block_coordinates(img, self._Kt_int, ext, 1.0, cfg.depth_max,
+                                                           cfg.trunc_voxels)
+        if blocks.shape[0] == 0:
+            return
+        self.vbg.integrate(blocks, img, self._Kt_int_round, ext, 1.0, cfg.depth_max, cfg.trunc_voxels)
+        self._frustum_blocks = blocks
+        self._n_integrated += 1
+
+    def raycast(self, pose: np.ndarray, K: Intrinsics | None = None, normals: bool = False,
+                refine: bool = True):
+        """Ray cast the model's zero level set from ``pose`` (camera-to-world); tracking size by default.
+
+        Open3D's CPU ray caster marches with nearest-lower voxel look-ups (no interpolation), which
+        leaves view-dependent terraces of up to a voxel in the depth. With ``refine`` every hit is
+        moved by one Newton step along its ray on the trilinearly interpolated TSDF (using the 8
+        voxel indices the ray caster reports), and the normal is the trilinear TSDF gradient.
+
+        Returns
+        -------
+        depth : (H, W) float32
+            z-depth in metres, NaN where no surface.
+        normals : (H, W, 3) float32, only with ``normals=True``
+            Unit normals in the camera frame, facing the camera, NaN where none.
+        """
+        cfg = self.config
+        K = K or self.K_trk
+        if self._frustum_blocks is None:
+            d = np.full(K.shape, np.nan, np.float32)
+            return (d, np.full(K.shape + (3,), np.nan, np.float32)) if normals else d
+        thr = float(min(self._n_integrated - 0.5, cfg.weight_threshold))
+        attrs = ["depth", "index", "mask"] if refine else ["depth"]
+        r = self.vbg.ray_cast(self._frustum_blocks, o3d.core.Tensor(K.K), o3d.core.Tensor(invert_pose(pose)),
+                              K.width, K.height, attrs, 1.0, cfg.depth_min, cfg.depth_max, thr, cfg.trunc_voxels)
+        d = r["depth"].numpy()[..., 0].astype(np.float32)
+        d[~(d > 0)] = np.nan
+        if not refine:
+            return (d, vertex_normals(d, K, max_jump=4 * cfg.voxel_size)) if normals else d
+        hit = np.isfinite(d) & r["mask"].numpy().all(axis=-1)
+        vv, uu = np.nonzero(hit)
+        t = d[hit].astype(np.float64)
+        R, o = pose[:3, :3], pose[:3, 3]
+        ray = np.stack([(uu - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones(len(uu))], axis=1) @ R.T
+        vs = cfg.voxel_size
+        g = (o + t[:, None] * ray) / vs                      # voxel i sits at i * voxel_size
+        fr = g - np.floor(g)
+        vals = self.vbg.attribute("tsdf").numpy().reshape(-1)[r["index"].numpy()[hit]].astype(np.float64)
+        bits = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], np.float64)   # (8, 3) dx,dy,dz
+        wa = np.where(bits[None], fr[:, None, :], 1.0 - fr[:, None, :])                      # (N, 8, 3)
+        w = wa.prod(axis=2)
+        f = (w * vals).sum(1)
+        grad = np.stack([((2 * bits[:, a] - 1)[None] * wa[:, :, (a + 1) % 3] * wa[:, :, (a + 2) % 3] * vals).sum(1)
+                         for a in range(3)], axis=1) / vs       # d tsdf / d x, 1/m (tsdf in units of trunc)
+        slope = np.einsum("ij,ij->i", grad, ray)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = -f / slope
+        good = np.isfinite(step) & (slope < 0) & (np.abs(step) <= 1.5 * vs)
+        out = d.copy()                                       # where it cannot be refined: the raw hit
+        out[vv[good], uu[good]] = (t + step)[good]
+        if not normals:
+            return out
+        return out, vertex_normals(out, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
+
+    def icp(self, src: np.ndarray, tgt_depth: np.ndarray, tgt_normals: np.ndarray, init: np.ndarray,
+            max_dist: float) -> tuple[np.ndarray, float, float, float]:
+        """Projective point-to-plane ICP (KinectFusion) of a depth image against a model ray cast.
+
+        Minimises ``sum_p w_p [n_q . (T x_p - v_q)]^2`` over rigid ``T`` (source camera -> target
+        camera), where ``q`` is the target pixel that ``T x_p`` projects to, with Huber weights
+        ``w_p`` and associations farther than ``max_dist`` dropped; Gauss-Newton on a twist,
+        coarse to fine over a 2-level pyramid (stride-2 subsampling).
+
+        Parameters
+        ----------
+        src : (H, W) float32
+            Source depth, metres, NaN invalid, at tracking size (``K_trk``).
+        tgt_depth, tgt_normals : (H, W), (H, W, 3)
+            Ray-cast model depth and camera-frame normals at the reference pose.
+        init : (4, 4)
+            Initial source-to-target transform.
+        max_dist : float
+            Association distance, metres.
+
+        Returns
+        -------
+        T : (4, 4) source-to-target transform.
+        overlap : float
+            Fraction of valid source pixels that project onto the model.
+        inlier_fraction : float
+            Fraction of those within ``inlier_dist`` of the model plane.
+        rmse : float
+            Point-to-plane RMSE of the inliers, metres.
+        """
+        cfg = self.config
+        K = self.K_trk
+        T = init.copy()
+        src_normals = vertex_normals(src, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
+        levels = []
+        for lev in range(len(cfg.track_iterations)):
+            f = 2 ** (len(cfg.track_iterations) - 1 - lev)        # coarsest first
+            Kl = (K.fx / f, K.fy / f, K.cx / f, K.cy / f)
+            sd = src[::f, ::f]
+            ok = np.isfinite(sd)
+            vv, uu = np.nonzero(ok)
+            z = sd[ok].astype(np.float64)
+            P = np.stack([(uu * f - K.cx) / K.fx * z, (vv * f - K.cy) / K.fy * z, z], axis=1)
+            Ns = src_normals[::f, ::f][ok].astype(np.float64)
+            td = tgt_depth[::f, ::f]
+            th, tw = td.shape
+            rays = np.stack(np.meshgrid((np.arange(tw) * f - K.cx) / K.fx, (np.arange(th) * f - K.cy) / K.fy), -1)
+            V = np.concatenate([rays * td[..., None], td[..., None]], axis=-1).reshape(-1, 3)
+            Nm = tgt_normals[::f, ::f].reshape(-1, 3).astype(np.float64)
+            levels.append((Kl, P, Ns, V, Nm, tw, th, cfg.track_iterations[lev]))
+        huber = max_dist / 4
+        n_src = len(levels[-1][1])
+        if n_src < 50:
+            return T, 0.0, 0.0, np.inf
+        for li, ((fx, fy, cx, cy), P, Ns, V, Nm, tw, th, iters) in enumerate(levels):
+            last = li == len(levels) - 1
+            for it in range(iters + 1 if last else iters):
+                Q = P @ T[:3, :3].T + T[:3, 3]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    u = np.rint(fx * Q[:, 0] / Q[:, 2] + cx)
+                    v = np.rint(fy * Q[:, 1] / Q[:, 2] + cy)
+                ins = (Q[:, 2] > 0) & (u >= 0) & (u < tw) & (v >= 0) & (v < th)
+                qi = np.flatnonzero(ins)
+                pix = v[qi].astype(np.int64) * tw + u[qi].astype(np.int64)
+                tv, tn = V[pix], Nm[pix]
+                hit = np.isfinite(tv[:, 2]) & np.isfinite(tn[:, 0])
+                qi, tv, tn = qi[hit], tv[hit], tn[hit]
+                Qh = Q[qi]
+                diff = Qh - tv
+                r = np.einsum("ij,ij->i", diff, tn)
+                ns = Ns[qi] @ T[:3, :3].T
+                near = ((np.abs(r) < max_dist) & (np.einsum("ij,ij->i", diff, diff) < (2 * max_dist) ** 2)
+                        & ~(np.abs(np.einsum("ij,ij->i", ns, tn)) < cfg.normal_cos))   # NaN source normal: kept
+                if last and it == iters:          # after the last update: quality only
+                    break
+                Qn, tnn, rn = Qh[near], tn[near], r[near]
+                if cfg.icp_normals != "target":
+                    nsn = ns[near]
+                    fin = np.isfinite(nsn[:, 0])
+                    nsn[~fin] = tnn[~fin]
+                    nsn *= np.sign(np.einsum("ij,ij->i", nsn, tnn))[:, None]
+                    tnn = nsn if cfg.icp_normals == "source" else nsn + tnn
+                    tnn /= np.linalg.norm(tnn, axis=1, keepdims=True)
+                    rn = np.einsum("ij,ij->i", Qn - tv[near], tnn)
+                if len(rn) < 30:
+                    return T, len(qi) / n_src, 0.0, np.inf
+                w = np.where(np.abs(rn) < huber, 1.0, huber / np.maximum(np.abs(rn), 1e-12))
+                if cfg.normal_space_weighting:
+                    w *= _normal_space_weights(tnn)
+                J = np.concatenate([np.cross(Qn, tnn), tnn], axis=1)
+                Jw = J * w[:, None]
+                A = Jw.T @ J
+                b = -Jw.T @ rn
+                A += np.eye(6) * (1e-9 + 1e-6 * np.trace(A) / 6)
+                xi = np.linalg.solve(A, b)
+                T = _twist_to_pose(xi) @ T
+                if np.abs(xi).max() < 1e-6 and not last:
+                    break
+        overlap = len(qi) / n_src
+        rr = r[near]
+        inl = np.abs(rr) < cfg.inlier_dist
+        frac = inl.sum() / max(len(qi), 1)
+        rmse = float(np.sqrt(np.mean(rr[inl] ** 2))) if inl.any() else np.inf
+        return T, float(overlap), float(frac), rmse
+
+    def track(self, depth_trk: np.ndarray, init_pose: np.ndarray, ref_pose: np.ndarray,
+              depth_diff: float) -> tuple[np.ndarray, float, float, float, dict]:
+        """Align a tracking-size depth image to the model ray cast at ``ref_pose`` (frame-to-model).
+
+        Returns the camera-to-world pose, overlap, inlier fraction, RMSE and timings (ms).
+        """
+        t0 = time.perf_counter()
+        model, normals = self.raycast(ref_pose, normals=True)
+        t1 = time.perf_counter()
+        init = invert_pose(ref_pose) @ init_pose          # source (current camera) -> target (ref camera)
+        T, overlap, frac, rmse = self.icp(depth_trk, model, normals, init, depth_diff)
+        t2 = time.perf_counter()
+        return ref_pose @ T, overlap, frac, rmse, {"raycast": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3}
+
+    # -- the per-frame entry point -------------------------------------------------------------
+    def process(self, depth: np.ndarray) -> TrackResult:
+        """Track one depth frame against the model and fuse it (KinectFusion step).
+
+        Parameters
+        ----------
+        depth : (H, W) float array
+            Depth in metres (NaN or 0 invalid) of the size of ``intrinsics``.
+
+        Returns
+        -------
+        TrackResult
+        """
+        cfg = self.config
+        depth = np.asarray(depth)
+        if depth.shape != self.intrinsics.shape:
+            raise AppFusionError(f"fusion: depth image of shape {depth.shape} does not match the intrinsics "
+                                 f"{self.intrinsics.shape}")
+        idx = self.n_frames
+        self.n_frames += 1
+        t0 = time.perf_counter()
+        d_int = downsample_depth(depth, self.f_int)
+        with np.errstate(invalid="ignore"):
+            d_int[~((d_int > cfg.depth_min) & (d_int < cfg.depth_max))] = np.nan
+        ms = {}
+        if self._frustum_blocks is None:
+            d_roi = self._mask_roi(d_int, self.K_int, self.pose)
+            if np.isfinite(d_roi).sum() < 0.01 * d_roi.size:
+                res = TrackResult(idx, STATE_LOST, self.pose.copy(), 0.0, 0.0, np.inf, False,
+                                  "no valid depth to start the model from")
+                self.results.append(res)
+                return res
+            ms["prep"] = (time.perf_counter() - t0) * 1e3
+            t1 = time.perf_counter()
+            self.integrate(d_roi, self.pose)
+            ms["integrate"] = (time.perf_counter() - t1) * 1e3
+            self._last_good = self.pose.copy()
+            res = TrackResult(idx, STATE_FIRST, self.pose.copy(), integrated=True, ms=ms)
+            self.results.append(res)
+            return res
+
+        relocalising = self.lost
+        ref = self._last_good
+        pred = ref if relocalising else ref @ self._velocity
+        d_roi_pred = self._mask_roi(d_int, self.K_int, pred)
+        d_trk = downsample_depth(d_roi_pred, self.f_trk)
+        ms["prep"] = (time.perf_counter() - t0) * 1e3
+        if np.isfinite(d_trk).sum() < 50:
+            pose, overlap, frac, rmse, tms = pred, 0.0, 0.0, np.inf, {}
+        else:
+            pose, overlap, frac, rmse, tms = self.track(
+                d_trk, pred, ref, cfg.relocalise_depth_diff if relocalising else cfg.depth_diff)
+        ms.update(tms)
+        jump = invert_pose(pred) @ pose
+        jump_m = float(np.linalg.norm(jump[:3, 3]))
+        jump_deg = rotation_angle_deg(jump[:3, :3])
+        scale = 2.5 if relocalising else 1.0
+        reason = ""
+        if overlap < cfg.min_overlap:
+            reason = f"overlap with the model {overlap:.2f} < {cfg.min_overlap}"
+        elif frac < cfg.min_inliers:
+            reason = f"inlier fraction {frac:.2f} < {cfg.min_inliers}"
+        elif rmse > cfg.max_rmse:
+            reason = f"residual {rmse * 1e3:.1f} mm > {cfg.max_rmse * 1e3:.1f} mm"
+        elif jump_m > cfg.max_jump_m * scale or jump_deg > cfg.max_jump_deg * scale:
+            reason = f"pose jump {jump_m * 1e3:.0f} mm / {jump_deg:.1f} deg"
+        if reason:
+            self.lost = True
+            self._velocity = np.eye(4)
+            res = TrackResult(idx, STATE_LOST, self._last_good.copy(), overlap, frac, rmse, False, reason, ms)
+            self.results.append(res)
+            return res
+        self.lost = False
+        self._velocity = invert_pose(ref) @ pose if not relocalising else np.eye(4)
+        self.pose = pose
+        self._last_good = pose.copy()
+        t1 = time.perf_counter()
+        self.integrate(self._mask_roi(d_int, self.K_int, pose), pose)
+        ms["integrate"] = (time.perf_counter() - t1) * 1e3
+        res = TrackResult(idx, STATE_OK, pose.copy(), overlap, frac, rmse, True, "", ms)
+        self.results.append(res)
+        return res
+
+    # -- outputs -----------------------------------------------------------------------------
+    @property
+    def n_blocks(self) -> int:
+        """Number of allocated voxel blocks."""
+        return int(self.vbg.hashmap().size())
+
+    def extract_mesh(self, weight_threshold: float | None = None) -> o3d.geometry.TriangleMesh:
+        """Marching-cubes mesh of the zero level set (fusion world frame), legacy Open3D mesh with
+        vertex normals. Empty if nothing was integrated."""
+        if self._n_integrated == 0:
+            return o3d.geometry.TriangleMesh()
+        thr = self.config.weight_threshold if weight_threshold is None else weight_threshold
+        try:
+            mesh = self.vbg.extract_triangle_mesh(float(min(thr, self._n_integrated - 0.5))).to_legacy()
+        except RuntimeError:                 # Open3D raises on an empty extraction
+            return o3d.geometry.TriangleMesh()
+        mesh.compute_vertex_normals()
+        return mesh
+
+    def extract_point_cloud(self, weight_threshold: float | None = None) -> o3d.geometry.PointCloud:
+        """Surface points of the volume with normals (fusion world frame)."""
+        if self._n_integrated == 0:
+            return o3d.geometry.PointCloud()
+        thr = self.config.weight_threshold if weight_threshold is None else weight_threshold
+        try:
+            return self.vbg.extract_point_cloud(float(min(thr, self._n_integrated - 0.5))).to_legacy()
+        except RuntimeError:
+            return o3d.geometry.PointCloud()

@@ -1,0 +1,629 @@
+"""The four white circles: detection, support plane, marker frame and object box (paper §4.1, §4.3).
+
+The paper's markers are "four white circles over a black background ... placed on a supporting
+plane"; they "define a virtual box with a pre-defined size on top of the supporting plane; anything
+outside of the box is considered part of the background", and the environment map and the object
+are both expressed in "the local coordinate system defined by markers".
+
+Detection, per frame
+--------------------
+1. Bright blobs in the IR image (white paper is bright in IR on black paper; on a Kinect v1 the IR
+   camera *is* the depth camera) or, lacking IR, in the RGB luminance: several thresholds relative
+   to the image's bright level, contours, and an ellipse fit each (:func:`detect_circles`).
+2. The support plane: RANSAC over the depth points that project around the candidate blobs
+   (:func:`fit_plane_ransac`).
+3. Each blob's contour is back-projected onto that plane and a circle is fitted there
+   (:func:`circle_on_plane`): this gives the exact 3-D centre (the centre of the image ellipse is
+   not the projection of the circle's centre) and the radius, which must match the known radius.
+4. Four circles forming the known square are chosen and numbered (:func:`number_square`).
+
+Marker frame (``docs/conventions.md``)
+--------------------------------------
+Origin at the centre of the four circles, z the plane normal towards the camera side (up), x from
+the midpoint of circles 3/4 to the midpoint of circles 1/2, y = z x x. Circles are numbered
+clockwise seen from +z starting at the (+x, +y) one: 1 = (+, +), 2 = (+, -), 3 = (-, -),
+4 = (-, +). A square of four identical circles is symmetric under 90 degree turns; the turn is
+fixed by the first frame that sees all four: x is the square's side direction closest to that
+camera's image-right direction. Start every pass of a scan (environment, geometry) from the same
+side of the table to get the same frame.
+
+The object box is ``|x|, |y| <= side / 2`` (the square spanned by the circle centres) and
+``z_min <= z <= height`` (default height 0.30 m, ``z_min`` a few mm to drop the plane itself).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from .errors import AppFusionError, EstimationError
+from .frame import Frame, Intrinsics, invert_pose, transform_points
+
+__all__ = ["MarkerConfig", "Ellipse", "MarkerDetection", "MarkerTracker", "ObjectBox",
+           "detect_circles", "fit_plane_ransac", "circle_on_plane", "number_square", "marker_frame",
+           "detect_markers", "marker_config_from_meta"]
+
+
+@dataclass(frozen=True)
+class MarkerConfig:
+    """What is known about the printed markers.
+
+    Attributes
+    ----------
+    radius_m : float
+        Radius of each white circle, metres.
+    side_m : float or None
+        Distance between neighbouring circle centres (the square's side); None = unknown (any
+        square whose circles have ``radius_m`` is accepted).
+    layout : str
+        Only ``"square"`` is supported.
+    radius_tol : float
+        Relative tolerance of the measured radius.
+    side_tol : float
+        Relative tolerance of the square's sides and diagonals.
+    """
+
+    radius_m: float = 0.02
+    side_m: float | None = None
+    layout: str = "square"
+    radius_tol: float = 0.25
+    side_tol: float = 0.08
+
+    def __post_init__(self):
+        if not (self.radius_m > 0):
+            raise AppFusionError(f"markers: radius_m must be positive, got {self.radius_m}")
+        if self.side_m is not None and not (self.side_m > 4 * self.radius_m):
+            raise AppFusionError(f"markers: side_m {self.side_m} must exceed 4 x radius_m {self.radius_m}")
+        if self.layout != "square":
+            raise AppFusionError(f"markers: layout {self.layout!r} is not supported (only 'square')")
+
+
+def marker_config_from_meta(meta: dict | None) -> MarkerConfig:
+    """A :class:`MarkerConfig` from session meta ``extra = {"markers": {"radius_m", "layout", "side_m"}}``
+    (or from that inner dict); defaults where absent."""
+    m = dict(meta or {})
+    m = m.get("extra", m)
+    m = m.get("markers", m) if isinstance(m, dict) else {}
+    try:
+        return MarkerConfig(radius_m=float(m.get("radius_m", 0.02)),
+                            side_m=None if m.get("side_m") is None else float(m["side_m"]),
+                            layout=str(m.get("layout", "square")))
+    except (TypeError, ValueError) as e:
+        raise AppFusionError(f"session meta 'markers' is malformed: {e}") from None
+
+
+# -- 2-D detection --------------------------------------------------------------------------------
+@dataclass
+class Ellipse:
+    """A bright elliptical blob in an image (pixels)."""
+
+    center: np.ndarray      # (2,) u, v
+    axes: np.ndarray        # (2,) semi-axes, major first
+    angle_deg: float
+    contour: np.ndarray     # (N, 2) float boundary points
+    fill: float             # contour area / ellipse area
+
+
+def _to_gray01(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image, np.float32)
+    if img.ndim == 3:
+        img = img @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    img = np.where(np.isfinite(img), img, 0)
+    hi = float(np.percentile(img, 99.9))
+    if hi <= 0:
+        return np.zeros(img.shape, np.float32)
+    return np.clip(img / hi, 0, 1).astype(np.float32)
+
+
+def detect_circles(image: np.ndarray, min_radius_px: float = 2.5, max_radius_px: float | None = None,
+                   levels: tuple[float, ...] = (0.08, 0.13, 0.2, 0.3, 0.45, 0.6), min_fill: float = 0.85,
+                   min_axis_ratio: float = 0.15) -> list[Ellipse]:
+    """Bright elliptical blobs (the white circles seen in perspective) in an image.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array
+        IR counts or linear RGB (luminance is used); any scale.
+    min_radius_px, max_radius_px : float
+        Accepted semi-major axis range in pixels (default max: a quarter of the image height).
+    levels : tuple of float
+        Thresholds relative to the image's 99.9th percentile; a blob found at several levels is
+        kept once (the level where its ellipse fits best).
+    min_fill : float
+        Minimum contour-area / ellipse-area ratio (a disc seen in perspective fills its ellipse).
+    min_axis_ratio : float
+        Minimum minor/major axis ratio (grazing views below it are too thin to measure).
+
+    Returns
+    -------
+    list of Ellipse
+    """
+    g = _to_gray01(image)
+    H, W = g.shape
+    max_r = max_radius_px or H / 4
+    g8 = cv2.GaussianBlur((g * 255).astype(np.uint8), (5, 5), 1.0)
+    cands: list[tuple[Ellipse, float]] = []
+    for lev in levels:
+        _, bw = cv2.threshold(g8, int(lev * 255), 255, cv2.THRESH_BINARY)
+        contours, _ = cv2.findContours(bw, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        for c in contours:
+            if len(c) < 8:
+                continue
+            area = cv2.contourArea(c)
+            if area < np.pi * min_radius_px ** 2 * min_axis_ratio:
+                continue
+            (cx, cy), (a2, b2), ang = cv2.fitEllipse(c)
+            a, b = max(a2, b2) / 2, min(a2, b2) / 2
+            if not (min_radius_px <= a <= max_r) or b < min_axis_ratio * a or b <= 0:
+                continue
+            pts = c[:, 0, :].astype(np.float64)
+            if (pts[:, 0].min() <= 0 or pts[:, 1].min() <= 0 or pts[:, 0].max() >= W - 1
+                    or pts[:, 1].max() >= H - 1):
+                continue                      # touches the border: not fully visible
+            fill = area / (np.pi * a * b)
+            # a pixel contour of a small disc loses about half a pixel all around
+            fill_expected = (max(a - 0.5, 0.1) * max(b - 0.5, 0.1)) / (a * b)
+            if fill < min_fill * fill_expected or fill > 1.15:
+                continue
+            hull = cv2.convexHull(c)
+            if area < 0.9 * cv2.contourArea(hull):
+                continue
+            cands.append((Ellipse(np.array([cx, cy]), np.array([a, b]), float(ang), pts, float(fill)), lev))
+    # one ellipse per blob: the level closest to half of the blob's peak brightness, where the
+    # blurred edge of a uniform disc crosses (the contour there has the true size)
+    found: list[Ellipse] = []
+    used = np.zeros(len(cands), bool)
+    for i, (e, _) in enumerate(cands):
+        if used[i]:
+            continue
+        group = [j for j, (f, _) in enumerate(cands)
+                 if not used[j] and np.hypot(*(f.center - e.center)) < 0.5 * min(f.axes[1], e.axes[1]) + 1]
+        used[group] = True
+        u0, v0 = int(round(e.center[0])), int(round(e.center[1]))
+        r = max(1, int(min(cands[j][0].axes[1] for j in group) * 0.6))
+        peak = float(np.percentile(g8[max(v0 - r, 0):v0 + r + 1, max(u0 - r, 0):u0 + r + 1], 75)) / 255.0
+        best = min(group, key=lambda j: abs(cands[j][1] - 0.5 * peak))
+        found.append(cands[best][0])
+    return found
+
+
+# -- plane and circles in 3-D -------------------------------------------------------------------
+def fit_plane_ransac(points: np.ndarray, threshold: float = 0.004, iterations: int = 128,
+                     seed: int = 0) -> tuple[np.ndarray, float, np.ndarray]:
+    """Plane through 3-D points by RANSAC then least squares on the inliers.
+
+    Parameters
+    ----------
+    points : (N, 3) array, metres.
+    threshold : float
+        Inlier distance, metres.
+    iterations : int
+        RANSAC samples.
+
+    Returns
+    -------
+    normal : (3,) unit normal
+    d : float
+        Offset: ``normal . x + d = 0`` on the plane.
+    inliers : (N,) bool
+    """
+    P = np.asarray(points, np.float64)
+    P = P[np.isfinite(P).all(1)]
+    if len(P) < 10:
+        raise EstimationError(f"plane fit: only {len(P)} valid points")
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(P), size=(iterations, 3))
+    a, b, c = P[idx[:, 0]], P[idx[:, 1]], P[idx[:, 2]]
+    n = np.cross(b - a, c - a)
+    ln = np.linalg.norm(n, axis=1)
+    ok = ln > 1e-9
+    n, a = n[ok] / ln[ok, None], a[ok]
+    if len(n) == 0:
+        raise EstimationError("plane fit: points are degenerate (collinear)")
+    d = -np.einsum("ij,ij->i", n, a)
+    sub = P if len(P) <= 2000 else P[rng.choice(len(P), 2000, replace=False)]
+    counts = (np.abs(sub @ n.T + d) < threshold).sum(0)
+    best = int(np.argmax(counts))
+    inl = np.abs(P @ n[best] + d[best]) < threshold
+    for _ in range(2):
+        Q = P[inl]
+        c0 = Q.mean(0)
+        _, _, vt = np.linalg.svd(Q - c0, full_matrices=False)
+        nn = vt[2]
+        dd = -nn @ c0
+        inl = np.abs(P @ nn + dd) < threshold
+    full = np.zeros(len(points), bool)
+    full[np.flatnonzero(np.isfinite(np.asarray(points)).all(1))[inl]] = True
+    return nn, float(dd), full
+
+
+def circle_on_plane(contour_px: np.ndarray, K: Intrinsics, normal: np.ndarray, d: float
+                    ) -> tuple[np.ndarray, float, float]:
+    """Exact 3-D circle from its image contour and its plane (camera frame of ``K``).
+
+    Each contour pixel's ray is intersected with the plane ``normal . x + d = 0``; a circle is
+    fitted to the intersections in plane coordinates (algebraic fit, Kasa 1976). The contour of a
+    thresholded blob lies half a pixel inside the true edge on average, so the fitted radius is
+    corrected by half a pixel's footprint.
+
+    Returns
+    -------
+    center : (3,) metres, camera frame
+    radius : float, metres
+    rms : float
+        RMS distance of the intersections from the fitted circle, metres.
+    """
+    uv = np.asarray(contour_px, np.float64)
+    rays = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))], axis=1)
+    denom = rays @ normal
+    if np.any(np.abs(denom) < 1e-9):
+        raise EstimationError("circle on plane: a contour ray is parallel to the plane")
+    t = -d / denom
+    X = rays * t[:, None]
+    c0 = X.mean(0)
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    x, y = (X - c0) @ e1, (X - c0) @ e2
+    A = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
+    sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
+    cx, cy = sol[0], sol[1]
+    r = float(np.sqrt(max(sol[2] + cx * cx + cy * cy, 0.0)))
+    rms = float(np.sqrt(np.mean((np.hypot(x - cx, y - cy) - r) ** 2)))
+    center = c0 + cx * e1 + cy * e2
+    pix_m = float(np.mean(t)) / K.fx             # metres per pixel at the circle
+    return center, r + 0.5 * pix_m, rms
+
+
+def number_square(centers: np.ndarray, normal: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
+    """Order four circle centres 1..4 (see the module docstring) given the marker normal (z) and a
+    direction that x should be closest to. Returns the permutation (indices into ``centers``)."""
+    C = np.asarray(centers, float)
+    z = normal / np.linalg.norm(normal)
+    xh = x_hint - (x_hint @ z) * z
+    if np.linalg.norm(xh) < 1e-9:
+        xh = np.cross(z, [0.0, 1.0, 0.0])
+    xh /= np.linalg.norm(xh)
+    yh = np.cross(z, xh)
+    p = C - C.mean(0)
+    th = np.arctan2(p @ yh, p @ xh)
+    # corners of an axis-aligned square sit at 45 + k 90 degrees: rotation of the square
+    phi = np.angle(np.mean(np.exp(4j * (th - np.pi / 4)))) / 4
+    x = np.cos(phi) * xh + np.sin(phi) * yh
+    y = np.cross(z, x)
+    px, py = p @ x, p @ y
+    quad = {(True, True): 0, (True, False): 1, (False, False): 2, (False, True): 3}
+    order = np.full(4, -1)
+    for i in range(4):
+        order[quad[(bool(px[i] > 0), bool(py[i] > 0))]] = i
+    if (order < 0).any():
+        raise EstimationError("markers: the four circles do not form a square around their centre")
+    return order
+
+
+def marker_frame(centers: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
+    """Marker-to-camera (or marker-to-world) 4x4 transform from the four numbered circle centres.
+
+    Parameters
+    ----------
+    centers : (4, 3) array
+        Circles 1..4 in some frame (metres).
+    normal : (3,) array, optional
+        Plane normal towards the camera side; default: the normal of the centres' best-fit plane
+        oriented by the numbering (clockwise seen from +z).
+    """
+    C = np.asarray(centers, float)
+    o = C.mean(0)
+    x = (C[0] + C[1]) / 2 - (C[2] + C[3]) / 2
+    if normal is None:
+        _, _, vt = np.linalg.svd(C - o)
+        z = vt[2]
+        # clockwise from +z: (c1 - o) x (c2 - o) points along -z
+        if np.cross(C[0] - o, C[1] - o) @ z > 0:
+            z = -z
+    else:
+        z = np.asarray(normal, float) / np.linalg.norm(normal)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, o
+    return T
+
+
+# -- per-frame detection ---------------------------------------------------------------------------
+@dataclass
+class MarkerDetection:
+    """Markers found in one frame (all 3-D quantities in the depth camera frame, metres).
+
+    Attributes
+    ----------
+    centers : (K, 3) array
+        Centres of the circles found (K = 0..4, more only when no square was found).
+    radii : (K,) array
+    pixels : (K, 2) array
+        Ellipse centres in the detection image.
+    normal : (3,) array or None
+        Support-plane normal towards the camera.
+    plane_d : float
+        ``normal . x + plane_d = 0``.
+    complete : bool
+        All four circles were found and form the square; ``centers`` is then numbered 1..4.
+    stream : str
+        Image used ("ir" or "rgb").
+    """
+
+    centers: np.ndarray
+    radii: np.ndarray
+    pixels: np.ndarray
+    normal: np.ndarray | None
+    plane_d: float
+    complete: bool
+    stream: str
+
+    @property
+    def n(self) -> int:
+        return int(len(self.centers))
+
+    def frame(self) -> np.ndarray:
+        """Marker-to-depth-camera transform (complete detections only)."""
+        if not self.complete:
+            raise EstimationError("markers: the marker frame needs all four circles")
+        return marker_frame(self.centers, self.normal)
+
+
+def _empty(stream: str) -> MarkerDetection:
+    return MarkerDetection(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), None, 0.0, False, stream)
+
+
+def detect_markers(frame: Frame, config: MarkerConfig | None = None, stream: str | None = None
+                   ) -> MarkerDetection:
+    """Find the white circles of a frame in 3-D (paper §4.1).
+
+    Parameters
+    ----------
+    frame : Frame
+        Needs depth with its intrinsics, and an IR or RGB image with intrinsics (and
+        ``depth_to_ir`` / ``depth_to_rgb``).
+    config : MarkerConfig, optional
+    stream : {"ir", "rgb"}, optional
+        Image to detect in; default IR when present, else RGB.
+
+    Returns
+    -------
+    MarkerDetection
+        Possibly empty (``n == 0``) when no circle is visible.
+    """
+    cfg = config or MarkerConfig()
+    if frame.depth is None or frame.depth_intrinsics is None:
+        raise AppFusionError(f"frame {frame.index}: marker detection needs depth with intrinsics")
+    stream = stream or ("ir" if frame.ir is not None else "rgb")
+    if stream == "ir":
+        img, K, T = frame.ir, frame.ir_intrinsics or frame.depth_intrinsics, frame.depth_to_ir
+    elif stream == "rgb":
+        img, K, T = frame.rgb_linear(), frame.rgb_intrinsics, frame.depth_to_rgb
+    else:
+        raise AppFusionError(f"markers: unknown stream {stream!r} (use 'ir' or 'rgb')")
+    if img is None or K is None:
+        raise AppFusionError(f"frame {frame.index}: no {stream} image with intrinsics for marker detection")
+    if img.shape[:2] != K.shape:
+        raise AppFusionError(f"frame {frame.index}: {stream} image {img.shape[:2]} does not match its intrinsics {K.shape}")
+    Kd = frame.depth_intrinsics
+    depth = np.asarray(frame.depth, np.float32)
+    # depth points (every `step`-th pixel) in the detection camera, and where they land in its image
+    step = max(1, int(np.ceil(np.sqrt(depth.size / 20000))))
+    ds = depth[::step, ::step]
+    vv, uu = np.nonzero(np.isfinite(ds) & (ds > 0))
+    if len(vv) < 50:
+        return _empty(stream)
+    z0 = ds[vv, uu].astype(np.float64)
+    Pd = np.stack([(uu * step - Kd.cx) / Kd.fx * z0, (vv * step - Kd.cy) / Kd.fy * z0, z0], axis=1)
+    P = Pd @ T[:3, :3].T + T[:3, 3]
+    P = P[P[:, 2] > 0]
+    if len(P) < 50:
+        return _empty(stream)
+    uv, z = K.project(P)
+    zmed = float(np.median(z))
+    min_r = max(2.5, 0.5 * K.fx * cfg.radius_m / max(zmed * 2.5, 1e-3))
+    max_r = 2.0 * K.fx * cfg.radius_m / max(float(np.percentile(z, 1)), 0.05)
+    ells = detect_circles(img, min_radius_px=min_r, max_radius_px=max_r)
+    if not ells:
+        return _empty(stream)
+    # plane from the depth points around the blobs
+    near = np.zeros(len(P), bool)
+    for e in ells:
+        r = 2.5 * e.axes[0]
+        box = np.flatnonzero((np.abs(uv[:, 0] - e.center[0]) < r) & (np.abs(uv[:, 1] - e.center[1]) < r))
+        near[box[np.hypot(uv[box, 0] - e.center[0], uv[box, 1] - e.center[1]) < r]] = True
+    if near.sum() < 30:
+        return _empty(stream)
+    try:
+        n, d, inl = fit_plane_ransac(P[near], threshold=max(0.004, 0.006 * zmed))
+    except EstimationError:
+        return _empty(stream)
+    if d < 0:                                      # orient the normal towards the camera (origin)
+        n, d = -n, -d
+    Pn = P[near]
+    cands = []
+    for e in ells:
+        sel = np.hypot(uv[near][:, 0] - e.center[0], uv[near][:, 1] - e.center[1]) < 1.5 * e.axes[0]
+        if sel.sum() >= 3 and np.median(np.abs(Pn[sel] @ n + d)) > max(0.006, 0.01 * zmed):
+            continue                              # a bright blob that is not on the plane
+        try:
+            c, r, rms = circle_on_plane(e.contour, K, n, d)
+        except EstimationError:
+            continue
+        if abs(r - cfg.radius_m) > cfg.radius_tol * cfg.radius_m or rms > 0.3 * cfg.radius_m:
+            continue
+        cands.append((c, r, e.center))
+    if not cands:
+        return MarkerDetection(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), _to_depth_dir(n, T),
+                               _to_depth_d(n, d, T), False, stream)
+    C = np.array([c[0] for c in cands])
+    R = np.array([c[1] for c in cands])
+    UV = np.array([c[2] for c in cands])
+    best, best_err = None, np.inf
+    if len(C) >= 4:
+        for combo in itertools.combinations(range(min(len(C), 10)), 4):
+            Q = C[list(combo)]
+            D = np.sort([np.linalg.norm(Q[i] - Q[j]) for i, j in itertools.combinations(range(4), 2)])
+            side = D[:4].mean() if cfg.side_m is None else cfg.side_m
+            err = max(np.abs(D[:4] - side).max() / side, np.abs(D[4:] - side * np.sqrt(2)).max() / (side * np.sqrt(2)))
+            if err < cfg.side_tol and err < best_err:
+                best, best_err = list(combo), err
+    Tinv = invert_pose(T)
+    n_depth = _to_depth_dir(n, T)
+    d_depth = _to_depth_d(n, d, T)
+    if best is None:
+        return MarkerDetection(transform_points(Tinv, C), R, UV, n_depth, d_depth, False, stream)
+    Cb = transform_points(Tinv, C[best])
+    order = number_square(Cb, n_depth, np.array([1.0, 0.0, 0.0]))
+    idx = np.array(best)[order]
+    return MarkerDetection(transform_points(Tinv, C[idx]), R[idx], UV[idx], n_depth, d_depth, True, stream)
+
+
+def _to_depth_dir(n: np.ndarray, T: np.ndarray) -> np.ndarray:
+    return T[:3, :3].T @ n
+
+
+def _to_depth_d(n: np.ndarray, d: float, T: np.ndarray) -> float:
+    # plane n.x + d = 0 in the image camera; x_img = R x_depth + t -> (R^T n).x_depth + (n.t + d) = 0
+    return float(n @ T[:3, 3] + d)
+
+
+# -- fusion over frames -----------------------------------------------------------------------------
+@dataclass
+class MarkerTracker:
+    """Running mean of the four circle centres in the world frame (paper §4.1, §4.3).
+
+    The numbering is fixed by the first complete detection (x closest to that camera's
+    image-right direction); later detections, complete or partial, are matched to the fused
+    centres by proximity.
+
+    Parameters
+    ----------
+    config : MarkerConfig
+    match_dist : float, optional
+        Largest distance (metres) between a detected centre and the fused one it updates;
+        default 1.5 x radius.
+    """
+
+    config: MarkerConfig = field(default_factory=MarkerConfig)
+    match_dist: float | None = None
+    sums: np.ndarray = field(default_factory=lambda: np.zeros((4, 3)))
+    counts: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    normal_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    n_complete: int = 0
+    n_updates: int = 0
+
+    @property
+    def initialised(self) -> bool:
+        return bool(self.counts.min() > 0)
+
+    @property
+    def centers(self) -> np.ndarray:
+        """(4, 3) fused centres 1..4 in the world frame."""
+        if not self.initialised:
+            raise EstimationError("markers: no frame has shown all four circles yet")
+        return self.sums / self.counts[:, None]
+
+    def update(self, det: MarkerDetection, pose: np.ndarray) -> np.ndarray:
+        """Fuse a detection made from camera ``pose`` (depth camera-to-world).
+
+        Returns
+        -------
+        (K,) int array: the circle number (0-based) each detected centre was assigned to, -1 if none.
+        """
+        assign = np.full(det.n, -1)
+        if det.n == 0:
+            return assign
+        W = transform_points(pose, det.centers)
+        nw = None if det.normal is None else pose[:3, :3] @ det.normal
+        if not self.initialised:
+            if not det.complete:
+                return assign
+            self.sums[:] = W
+            self.counts[:] = 1
+            self.normal_sum = nw.copy()
+            self.n_complete = 1
+            self.n_updates = 1
+            return np.arange(4)
+        md = self.match_dist or 1.5 * self.config.radius_m
+        C = self.centers
+        dist = np.linalg.norm(W[:, None, :] - C[None], axis=2)
+        for k in range(det.n):
+            j = int(np.argmin(dist[k]))
+            if dist[k, j] < md and j not in assign:
+                assign[k] = j
+        for k, j in enumerate(assign):
+            if j >= 0:
+                self.sums[j] += W[k]
+                self.counts[j] += 1
+        if nw is not None and (assign >= 0).any():
+            self.normal_sum += nw
+        self.n_complete += int(det.complete and (assign >= 0).all())
+        self.n_updates += 1
+        return assign
+
+    def marker_to_world(self) -> np.ndarray:
+        """4x4 transform from the marker frame to the world frame, from the fused centres."""
+        n = self.normal_sum / np.linalg.norm(self.normal_sum)
+        return marker_frame(self.centers, n)
+
+    def side(self) -> float:
+        """Mean measured side of the square, metres."""
+        C = self.centers
+        return float(np.mean([np.linalg.norm(C[i] - C[(i + 1) % 4]) for i in range(4)]))
+
+
+# -- the object box ---------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ObjectBox:
+    """The virtual box on the support plane that holds the object (marker frame, metres).
+
+    Attributes
+    ----------
+    half_x, half_y : float
+        Half extents in x and y (``side / 2`` for the square of circle centres).
+    z_min, z_max : float
+        Height range; ``z_min`` a few millimetres above the plane drops the plane itself.
+    """
+
+    half_x: float
+    half_y: float
+    z_min: float = 0.004
+    z_max: float = 0.30
+
+    def __post_init__(self):
+        if not (self.half_x > 0 and self.half_y > 0 and self.z_max > self.z_min):
+            raise AppFusionError(f"object box: invalid extents {self}")
+
+    @classmethod
+    def from_side(cls, side_m: float, height_m: float = 0.30, z_min: float = 0.004) -> "ObjectBox":
+        return cls(side_m / 2, side_m / 2, z_min, height_m)
+
+    @property
+    def lo(self) -> np.ndarray:
+        return np.array([-self.half_x, -self.half_y, self.z_min])
+
+    @property
+    def hi(self) -> np.ndarray:
+        return np.array([self.half_x, self.half_y, self.z_max])
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: which marker-frame points (N, 3) lie inside."""
+        P = np.asarray(points)
+        return np.all((P >= self.lo) & (P <= self.hi), axis=1)
+
+    def crop_mesh(self, mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+        """A copy of a marker-frame mesh without the vertices outside the box (and their triangles)."""
+        out = o3d.geometry.TriangleMesh(mesh)
+        if len(out.vertices) == 0:
+            return out
+        out.remove_vertices_by_mask(~self.contains(np.asarray(out.vertices)))
+        out.remove_unreferenced_vertices()
+        return out
