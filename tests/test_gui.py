@@ -671,14 +671,15 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     win.points.gl.makeCurrent()
     print("GL renderer:", GL.glGetString(GL.GL_RENDERER))
     assert win.a_start.isEnabled() and not win.a_export.isEnabled()
-    win.start()
+    win.a_start.trigger()  # the toolbar's actions, as a click would
     wait_until(lambda: win.snapshot is not None and win.snapshot.stage == "environment", what="environment stage")
-    win.pause()
-    assert win.worker.state == "paused" and "Paused" in win.banner.text()
+    win.a_pause.trigger()
+    assert win.worker.state == "paused" and "Paused" in win.banner.text() and win.a_pause.text() == "Resume"
     seq, ticks = win.worker.box.get()[0], win.stats.total_ticks
     wait_until(lambda: win.stats.total_ticks > ticks + 10, what="ticks while paused")
     assert win.worker.box.get()[0] <= seq + 1  # the engine waits
-    win.resume()
+    win.a_pause.trigger()
+    assert win.worker.state == "running"
     wait_until(lambda: win.snapshot.stage == "ir" and win.snapshot.frame >= 30 or win.snapshot.stage == "rgb",
                what=lambda: f"late ir stage (worker: {win.worker.status()}, stage {win.snapshot.stage})")
     win.pause()  # hold the scan for a screenshot with every view filled in
@@ -741,7 +742,7 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     assert np.allclose(centre_rgb(), cluster_rgb([0])[0], atol=0.05), centre_rgb()
     win.a_paint.setChecked(False)
     shoot(win, "painted")
-    win.undo_paint()
+    win.a_undo.trigger()
     assert r.undo_calls == 1 and len(win.strokes) == 0
     wait_until(lambda: np.array_equal(win.snapshot.labels, r.base), what="the undo in the engine's labels")
     assert np.allclose(win.points.colours[r.wrong, :3], cluster_rgb([1])[0])
@@ -756,7 +757,8 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     wait_until(lambda: win._camera_key == win.points.camera_key(), what="the shading to follow the camera")
     shoot(win, "appearance")
 
-    job = win.export()
+    win.a_export.trigger()
+    job = win.export_job
     wait_until(lambda: win.exported is not None, what="the export")
     # render from the 3-D view's camera: the sphere in the middle of the picture, background around
     rj = win.render_view(size=(96, 72), spp=4)
@@ -787,7 +789,7 @@ def test_xcb_device_error_keeps_scan(tmp_path):
     assert win.a_export.isEnabled() and not win.a_stop.isEnabled()
     assert win.points.positions is not None  # the scan so far is still shown
     shoot(win, "device-lost")
-    win.export()
+    win.a_export.trigger()
     wait_until(lambda: win.exported is not None, what="the export after the error")
     assert ScanResult.load(tmp_path / "out" / "result.npz").positions.shape == (4000, 3)
     win.close()

@@ -244,7 +244,11 @@ class MainWindow(QtWidgets.QMainWindow):
             a.setCheckable(checkable)
             if shortcut:
                 a.setShortcut(QtGui.QKeySequence(shortcut))
-            a.triggered.connect(slot)
+            # triggered(bool) would land in the slots' optional parameters (export(out_dir), ...)
+            if checkable:
+                a.triggered.connect(lambda checked: slot(bool(checked)))
+            else:
+                a.triggered.connect(lambda checked=False: slot())
             tb.addAction(a)
             return a
 
@@ -299,7 +303,7 @@ class MainWindow(QtWidgets.QMainWindow):
         tb2.addWidget(self.label_combo)
         self.a_undo = QtGui.QAction("Undo paint", self)
         self.a_undo.setShortcut(QtGui.QKeySequence.StandardKey.Undo)
-        self.a_undo.triggered.connect(self.undo_paint)
+        self.a_undo.triggered.connect(lambda checked=False: self.undo_paint())
         tb2.addAction(self.a_undo)
         tb2.addSeparator()
         self.a_fit = QtGui.QAction("Fit view", self)
