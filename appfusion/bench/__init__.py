@@ -1,8 +1,49 @@
 """``appfusion bench``: run time against error for every stage, against ground truth.
 
+Stages
+------
 Each stage of the pipeline contributes a module in :mod:`appfusion.bench.stages` that defines
 ``run(ctx) -> dict[str, float | None]`` returning measured values for some of the metric names in
-:data:`METRICS`. Metrics of stages that do not exist yet stay ``null`` in the JSON.
+:data:`METRICS`. Metrics of stages that do not exist yet stay ``null`` in the JSON. A stage that
+reports a name outside :data:`METRICS` is rejected (reported as failed); stage-specific figures go
+to ``ctx.extra[STAGE]`` instead. A stage that raises is reported and the others still run.
+
+The context (:class:`appfusion.bench.runner.BenchContext`) tells a stage how hard to try:
+``ctx.quick`` (small inputs; the whole ``--quick`` bench must finish in under 2 minutes on 2 cores),
+``ctx.budget_s`` (this stage's share of that time, seconds; the runner warns when a stage overruns)
+and ``ctx.time_left()`` (seconds of the budget still left), plus ``ctx.seed``, ``ctx.workdir`` and a
+``ctx.cache`` shared between stages. A module may set ``BUDGET_S = (quick_s, full_s)`` to override the
+runner's default budget for it.
+
+Sweeps
+------
+Besides its metrics a stage may measure time against error over a quality knob (points sampled, HBSAB
+resolution, wavelet coefficients kept, env-map resolution, voxel size, frame stride, ...)::
+
+    ctx.extra["sweeps"][KNOB] = {
+        "metric": NAME,            # what "error" is (a METRICS name where one fits)
+        "default": VALUE,          # the engine's default setting of the knob; must be one of the values
+        "points": [{"value": v, "ms_per_frame": t, "error": e}, ...],
+        "note": "...",             # optional: what the time and the error cover
+    }
+
+with ``t`` in milliseconds per frame (finite, >= 0) and ``e`` >= 0, or ``None`` where that setting
+failed. Use ``ctx.add_sweep(knob, metric, default, points, note=None)``, which validates the sweep.
+Knob names are global: two stages must not sweep the same name. The runner moves the sweeps to the
+report's top-level ``"sweeps"`` (each with the ``"stage"`` that measured it, its Pareto ``"front"`` and
+``"default_on_front"``), reports ``"defaults_on_front": {knob: bool | None}`` and draws the Pareto plot
+(:mod:`appfusion.bench.pareto`).
+
+Report
+------
+``run_bench`` returns (and ``--json FILE`` writes)::
+
+    {"metrics": {NAME: {"value": v | null, "unit": u, "goal": g | null, "better": "lower" | "higher"}},
+     "stages": {STAGE: {"status": "ok" | "error" | "not built yet", "seconds", "budget_s",
+                        "over_budget", "metrics", "peak_rss_mb", ...}},
+     "sweeps": {KNOB: {...}}, "defaults_on_front": {KNOB: bool | null},
+     "extra": {STAGE: {...}}, "quick": bool, "seconds": total, "budget_s": total budget,
+     "plot": path | null, "host": {...}}
 """
 
 from __future__ import annotations
