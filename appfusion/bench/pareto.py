@@ -246,6 +246,7 @@ def plot_sweeps(sweeps: Mapping[str, Mapping[str, Any]], path: str | Path, title
 
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure  # no pyplot: no global state, no GUI backend
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     if not sweeps:
         raise BenchError("Pareto plot: no sweeps were reported by the stages that ran")
@@ -286,6 +287,10 @@ def plot_sweeps(sweeps: Mapping[str, Mapping[str, Any]], path: str | Path, title
             pos = [v for v in vals if v > 0]
             if len(pos) == len(vals) and pos and max(pos) > 10 * min(pos):
                 (ax.set_xscale if axis == "x" else ax.set_yscale)("log")
+                if axis == "x":                      # plain 1-2-5 labels: times are read, not compared in decades
+                    ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+                    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+                    ax.xaxis.set_minor_formatter(NullFormatter())
         stage = sw.get("stage")
         ax.set_title(f"{knob}" + (f"  [{stage}]" if stage else ""), fontsize=10)
         xlabel = "time per frame, ms"

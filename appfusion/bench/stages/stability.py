@@ -149,8 +149,9 @@ def sphere_rows(rng: np.random.Generator, n: int = 3000) -> list[dict[str, Any]]
             c_at, diff = f64.center, max(float(np.abs(f32.center - f64.center).max()), abs(f32.radius - f64.radius)) / BALL_R
             err = np.linalg.norm(f64.center - BALL_CAM) * 1000
             value = f"centre error {err:.2f} mm" + ("" if fixed else f", radius error {abs(f64.radius - BALL_R) * 1000:.2f} mm")
-        except EstimationError as e:
-            c_at, diff, value = BALL_CAM, None, f"rejected: {str(e)[:70]}"
+        except EstimationError as e:                      # the fit refuses: condition at the truth
+            msg = str(e).removeprefix("sphere fit: ")
+            c_at, diff, value = BALL_CAM, None, "rejected (EstimationError): " + (msg[:80] + "..." if len(msg) > 80 else msg)
         J = sphere_jacobian(p, c_at, fixed)
         rows.append(_row("sphere_fit (fit_sphere)", case, "J of |p-c|-R w.r.t. (c, R)" if not fixed else "J w.r.t. c",
                          condition_number(J), diff, "fit from float32 points (|dc|, |dR|) / R", value,
@@ -478,10 +479,11 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     """The stability rows as a Markdown table (docs/performance.md)."""
     out = ["| estimator | input | condition number (of) | float32 vs float64 (what) | result | note |",
            "|---|---|---|---|---|---|"]
+    esc = lambda x: str(x).replace("|", "\\|")  # noqa: E731  (|p - c| inside a cell)
     for r in rows:
         f32 = "—" if r["f32_rel_diff"] is None else f"{r['f32_rel_diff']:.1e}"
-        out.append(f"| {r['estimator']} | {r['case']} | {r['cond']:.3g} ({r['cond_of']}) | {f32} ({r['f32_of']}) "
-                   f"| {r['value']} | {r['note']} |")
+        out.append(f"| {esc(r['estimator'])} | {esc(r['case'])} | {r['cond']:.3g} ({esc(r['cond_of'])}) "
+                   f"| {f32} ({esc(r['f32_of'])}) | {esc(r['value'])} | {esc(r['note'])} |")
     return "\n".join(out)
 
 
