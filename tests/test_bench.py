@@ -276,7 +276,7 @@ def test_cli_bench_stability_json(tmp_path):
         assert r["cond"] >= 1.0 and (r["f32_rel_diff"] is None or 0 <= r["f32_rel_diff"] < 1e-2), r
     assert set(rep["sweeps"]) == {"hbsab_n", "envmap_n"}
     for knob, sw in rep["sweeps"].items():
-        assert sw["stage"] == "stability" and len(sw["points"]) >= 4
+        assert sw["stage"] == "stability" and len(sw["points"]) >= 3   # points may be skipped for time
         assert isinstance(rep["defaults_on_front"][knob], bool)
         errs = [p["error"] for p in sw["points"]]
         assert errs[0] > 10 * min(errs)                           # resolution matters: the sweep measures something

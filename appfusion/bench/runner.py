@@ -32,7 +32,7 @@ STAGE_BUDGETS_S: dict[str, tuple[float, float]] = {
     "ir": (15.0, 300.0),
     "rgb": (15.0, 300.0),
     "scan": (25.0, 600.0),
-    "stability": (10.0, 120.0),
+    "stability": (15.0, 180.0),
 }
 #: budget of a stage missing from STAGE_BUDGETS_S, (quick, full)
 DEFAULT_BUDGET_S = (10.0, 300.0)
