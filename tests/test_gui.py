@@ -813,3 +813,39 @@ def test_xcb_close_mid_scan_saves_partial(tmp_path, synth_session):
     res = ScanResult.load(out / "result.npz")
     assert res.positions.shape == (4000, 3)
     assert (out / "gui-session.json").exists()
+
+
+@xcb_only
+def test_xcb_live_device_record_and_passes(tmp_path):
+    """A live device (OpenNI2's DummyDevice): Record, Next pass, Stop; the recording has the passes."""
+    from appfusion.errors import SourceError
+    from appfusion.gui.app import open_source
+    from replay.session import SessionReader
+
+    try:
+        src = open_source("openni2:Dummy")
+        src.open()
+        src.close()
+    except SourceError as e:
+        pytest.skip(f"OpenNI2 DummyDevice unavailable here: {e}")
+    h = {}
+    win = _window("openni2:Dummy", tmp_path / "out", h, work_s=0.0)
+    assert win.a_record.isEnabled() and win.pass_combo.isEnabled() and not win.a_next.isEnabled()
+    win.pass_combo.setCurrentText("environment")
+    win.a_record.trigger()
+    assert win.a_record.isChecked() and win.record_dir is not None
+    win.a_start.trigger()
+    wait_until(lambda: win.worker.source.frames >= 8, what="live frames")
+    assert win.a_next.isEnabled() and not win.a_record.isEnabled()
+    win.pass_combo.setCurrentText("geometry")
+    win.a_next.trigger()
+    assert h["r"].live_pass == "geometry" and win.pass_combo.currentText() == "rgb"
+    n = win.worker.source.frames
+    wait_until(lambda: win.worker.source.frames >= n + 8, what="more live frames")
+    win.a_stop.trigger()
+    wait_until(lambda: win.worker.state == "stopped" and "Stopped" in win.banner.text(), what="the stop")
+    r = SessionReader(win.record_dir)
+    assert len(r) == win.worker.recorder.frames >= n + 8
+    assert [v for _, k, v in r.events if k == "pass"] == ["environment", "geometry"]
+    win.close()
+    wait_until(lambda: not win.isVisible(), timeout=15, what="close")
