@@ -36,7 +36,7 @@ import numpy as np
 import open3d as o3d
 
 from .errors import AppFusionError
-from .frame import Intrinsics, invert_pose
+from .frame import Intrinsics, invert_pose, transform_points
 
 __all__ = ["FusionConfig", "TrackResult", "TSDFFusion", "downsample_depth", "voxel_size_for_box",
            "rotation_angle_deg"]
@@ -46,6 +46,36 @@ o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
 STATE_OK = "ok"
 STATE_LOST = "lost"
 STATE_FIRST = "first"
+
+
+def orthonormalize(T: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform to a 4x4 matrix (rotation by SVD); stops round-off in chains of
+    pose products from growing into a scale or shear."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rigid transform (4x4) minimising ``sum |T src_i - dst_i|^2`` (Kabsch / Umeyama, no scale)."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    cs, cd = src.mean(0), dst.mean(0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = cd - R @ cs
+    return T
 
 
 def _twist_to_pose(xi: np.ndarray) -> np.ndarray:
@@ -166,16 +196,19 @@ def downsample_depth(depth: np.ndarray, factor: int, max_jump: float = 0.03) -> 
         return np.asarray(depth, np.float32)
     H, W = depth.shape
     h, w = H // f, W // f
-    b = np.asarray(depth[: h * f, : w * f], np.float32).reshape(h, f, w, f)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(b)
-        n = valid.sum(axis=(1, 3))
-        s = np.where(valid, b, 0).sum(axis=(1, 3))
-        mx = np.where(valid, b, -np.inf).max(axis=(1, 3))
-        mn = np.where(valid, b, np.inf).min(axis=(1, 3))
-        out = s / np.maximum(n, 1)
-        out[(2 * n < f * f) | (mx - mn > max_jump)] = np.nan
-    return out.astype(np.float32)
+    d = np.asarray(depth[: h * f, : w * f], np.float32)
+    valid = d > 0                                       # False for NaN
+    d0 = np.where(valid, d, np.float32(0))
+    # block sums via OpenCV's area resampling (exact block means for integer factors)
+    s = cv2.resize(d0, (w, h), interpolation=cv2.INTER_AREA)
+    n = cv2.resize(valid.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    kernel = np.ones((f, f), np.uint8)
+    mx = cv2.dilate(d0, kernel, anchor=(0, 0))[::f, ::f]
+    mn = cv2.erode(np.where(valid, d, np.float32(1e6)), kernel, anchor=(0, 0))[::f, ::f]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = s / n
+    out[(n < 0.5) | (mx - mn > max_jump)] = np.nan
+    return out.astype(np.float32, copy=False)
 
 
 @dataclass
@@ -209,6 +242,17 @@ class FusionConfig:
         Point-to-plane distance of an inlier.
     normal_cos : float
         An association is dropped when source and model normals differ by more (cosine).
+    icp_tolerance : float
+        A pyramid level stops when a Gauss-Newton step is smaller (radians / metres).
+    normal_space_weighting : bool
+        Weight correspondences by the inverse frequency of their normal direction (a dominant
+        support plane otherwise drowns the object's few constraints on in-plane motion).
+    normal_smooth_px : float
+        Gaussian smoothing (pixels at tracking size) of the depth before normals are taken.
+    anchor_weight : float
+        Total weight of anchor correspondences relative to the pixel terms.
+    refine_raycast : bool
+        Refine ray-cast hits on the trilinear TSDF (see :meth:`TSDFFusion.raycast`).
     max_rmse : float
         Lost if the inliers' point-to-plane RMSE is larger.
     max_jump_m, max_jump_deg : float
@@ -233,9 +277,11 @@ class FusionConfig:
     inlier_dist: float = 0.01
     max_rmse: float = 0.006
     normal_cos: float = 0.8
-    icp_normals: str = "target"
+    icp_tolerance: float = 2e-5
     normal_space_weighting: bool = True
     normal_smooth_px: float = 1.0
+    anchor_weight: float = 0.2
+    refine_raycast: bool = True
     max_jump_m: float = 0.08
     max_jump_deg: float = 12.0
     block_resolution: int = 8
@@ -398,7 +444,7 @@ class TSDFFusion:
         self._n_integrated += 1
 
     def raycast(self, pose: np.ndarray, K: Intrinsics | None = None, normals: bool = False,
-                refine: bool = True):
+                refine: bool | None = None):
         """Ray cast the model's zero level set from ``pose`` (camera-to-world); tracking size by default.
 
         Open3D's CPU ray caster marches with nearest-lower voxel look-ups (no interpolation), which
@@ -415,6 +461,7 @@ class TSDFFusion:
         """
         cfg = self.config
         K = K or self.K_trk
+        refine = cfg.refine_raycast if refine is None else refine
         if self._frustum_blocks is None:
             d = np.full(K.shape, np.nan, np.float32)
             return (d, np.full(K.shape + (3,), np.nan, np.float32)) if normals else d
@@ -425,7 +472,7 @@ class TSDFFusion:
         d = r["depth"].numpy()[..., 0].astype(np.float32)
         d[~(d > 0)] = np.nan
         if not refine:
-            return (d, vertex_normals(d, K, max_jump=4 * cfg.voxel_size)) if normals else d
+            return (d, vertex_normals(d, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)) if normals else d
         hit = np.isfinite(d) & r["mask"].numpy().all(axis=-1)
         vv, uu = np.nonzero(hit)
         t = d[hit].astype(np.float64)
@@ -452,7 +499,8 @@ class TSDFFusion:
         return out, vertex_normals(out, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
 
     def icp(self, src: np.ndarray, tgt_depth: np.ndarray, tgt_normals: np.ndarray, init: np.ndarray,
-            max_dist: float) -> tuple[np.ndarray, float, float, float]:
+            max_dist: float, anchors: tuple[np.ndarray, np.ndarray] | None = None
+            ) -> tuple[np.ndarray, float, float, float]:
         """Projective point-to-plane ICP (KinectFusion) of a depth image against a model ray cast.
 
         Minimises ``sum_p w_p [n_q . (T x_p - v_q)]^2`` over rigid ``T`` (source camera -> target
@@ -470,6 +518,10 @@ class TSDFFusion:
             Initial source-to-target transform.
         max_dist : float
             Association distance, metres.
+        anchors : (src_pts (K, 3), tgt_pts (K, 3)), optional
+            Known point correspondences (e.g. marker centres) in the source and target camera
+            frames, added as point-to-point terms of total weight ``anchor_weight`` times the
+            pixel terms' (Huber, 1 cm).
 
         Returns
         -------
@@ -488,53 +540,50 @@ class TSDFFusion:
         levels = []
         for lev in range(len(cfg.track_iterations)):
             f = 2 ** (len(cfg.track_iterations) - 1 - lev)        # coarsest first
-            Kl = (K.fx / f, K.fy / f, K.cx / f, K.cy / f)
             sd = src[::f, ::f]
             ok = np.isfinite(sd)
             vv, uu = np.nonzero(ok)
-            z = sd[ok].astype(np.float64)
-            P = np.stack([(uu * f - K.cx) / K.fx * z, (vv * f - K.cy) / K.fy * z, z], axis=1)
-            Ns = src_normals[::f, ::f][ok].astype(np.float64)
+            z = sd[ok]
+            P = np.stack([(uu * f - K.cx) / K.fx * z, (vv * f - K.cy) / K.fy * z, z], axis=1).astype(np.float32)
+            Ns = src_normals[::f, ::f][ok]
             td = tgt_depth[::f, ::f]
             th, tw = td.shape
-            rays = np.stack(np.meshgrid((np.arange(tw) * f - K.cx) / K.fx, (np.arange(th) * f - K.cy) / K.fy), -1)
-            V = np.concatenate([rays * td[..., None], td[..., None]], axis=-1).reshape(-1, 3)
-            Nm = tgt_normals[::f, ::f].reshape(-1, 3).astype(np.float64)
-            levels.append((Kl, P, Ns, V, Nm, tw, th, cfg.track_iterations[lev]))
+            ru = ((np.arange(tw) * f - K.cx) / K.fx).astype(np.float32)
+            rv = ((np.arange(th) * f - K.cy) / K.fy).astype(np.float32)
+            tgt = np.empty((th, tw, 6), np.float32)              # vertex and normal per target pixel
+            tgt[..., 0] = ru[None, :] * td
+            tgt[..., 1] = rv[:, None] * td
+            tgt[..., 2] = td
+            tgt[..., 3:] = tgt_normals[::f, ::f]
+            levels.append(((K.fx / f, K.fy / f, K.cx / f, K.cy / f), P, Ns, tgt.reshape(-1, 6), tw, th,
+                           cfg.track_iterations[lev]))
         huber = max_dist / 4
         n_src = len(levels[-1][1])
         if n_src < 50:
             return T, 0.0, 0.0, np.inf
-        for li, ((fx, fy, cx, cy), P, Ns, V, Nm, tw, th, iters) in enumerate(levels):
+        for li, ((fx, fy, cx, cy), P, Ns, tgt, tw, th, iters) in enumerate(levels):
             last = li == len(levels) - 1
             for it in range(iters + 1 if last else iters):
-                Q = P @ T[:3, :3].T + T[:3, 3]
+                R32 = T[:3, :3].astype(np.float32)
+                Q = P @ R32.T + T[:3, 3].astype(np.float32)
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    u = np.rint(fx * Q[:, 0] / Q[:, 2] + cx)
-                    v = np.rint(fy * Q[:, 1] / Q[:, 2] + cy)
-                ins = (Q[:, 2] > 0) & (u >= 0) & (u < tw) & (v >= 0) & (v < th)
-                qi = np.flatnonzero(ins)
-                pix = v[qi].astype(np.int64) * tw + u[qi].astype(np.int64)
-                tv, tn = V[pix], Nm[pix]
-                hit = np.isfinite(tv[:, 2]) & np.isfinite(tn[:, 0])
-                qi, tv, tn = qi[hit], tv[hit], tn[hit]
+                    iz = 1.0 / Q[:, 2]
+                    u = np.rint(fx * Q[:, 0] * iz + cx)
+                    v = np.rint(fy * Q[:, 1] * iz + cy)
+                qi = np.flatnonzero((Q[:, 2] > 0) & (u >= 0) & (u < tw) & (v >= 0) & (v < th))
+                g = tgt[v[qi].astype(np.int64) * tw + u[qi].astype(np.int64)]
+                hit = np.isfinite(g[:, 2]) & np.isfinite(g[:, 3])
+                qi, g = qi[hit], g[hit]
+                tn = g[:, 3:]
                 Qh = Q[qi]
-                diff = Qh - tv
+                diff = Qh - g[:, :3]
                 r = np.einsum("ij,ij->i", diff, tn)
-                ns = Ns[qi] @ T[:3, :3].T
+                ncos = np.einsum("ij,ij->i", Ns[qi] @ R32.T, tn)
                 near = ((np.abs(r) < max_dist) & (np.einsum("ij,ij->i", diff, diff) < (2 * max_dist) ** 2)
-                        & ~(np.abs(np.einsum("ij,ij->i", ns, tn)) < cfg.normal_cos))   # NaN source normal: kept
+                        & ~(np.abs(ncos) < cfg.normal_cos))            # NaN source normal: kept
                 if last and it == iters:          # after the last update: quality only
                     break
-                Qn, tnn, rn = Qh[near], tn[near], r[near]
-                if cfg.icp_normals != "target":
-                    nsn = ns[near]
-                    fin = np.isfinite(nsn[:, 0])
-                    nsn[~fin] = tnn[~fin]
-                    nsn *= np.sign(np.einsum("ij,ij->i", nsn, tnn))[:, None]
-                    tnn = nsn if cfg.icp_normals == "source" else nsn + tnn
-                    tnn /= np.linalg.norm(tnn, axis=1, keepdims=True)
-                    rn = np.einsum("ij,ij->i", Qn - tv[near], tnn)
+                Qn, tnn, rn = Qh[near].astype(np.float64), tn[near].astype(np.float64), r[near].astype(np.float64)
                 if len(rn) < 30:
                     return T, len(qi) / n_src, 0.0, np.inf
                 w = np.where(np.abs(rn) < huber, 1.0, huber / np.maximum(np.abs(rn), 1e-12))
@@ -544,11 +593,22 @@ class TSDFFusion:
                 Jw = J * w[:, None]
                 A = Jw.T @ J
                 b = -Jw.T @ rn
+                if anchors is not None and len(anchors[0]):
+                    Qa = anchors[0] @ T[:3, :3].T + T[:3, 3]
+                    ea = Qa - anchors[1]
+                    na = np.linalg.norm(ea, axis=1)
+                    wa = cfg.anchor_weight * w.sum() / len(Qa) * np.where(na < 0.01, 1.0, 0.01 / np.maximum(na, 1e-12))
+                    for q, e_, w_ in zip(Qa, ea, wa):
+                        Ja = np.concatenate([-_skew(q), np.eye(3)], axis=1)
+                        A += w_ * Ja.T @ Ja
+                        b -= w_ * Ja.T @ e_
                 A += np.eye(6) * (1e-9 + 1e-6 * np.trace(A) / 6)
                 xi = np.linalg.solve(A, b)
                 T = _twist_to_pose(xi) @ T
-                if np.abs(xi).max() < 1e-6 and not last:
-                    break
+                if np.abs(xi).max() < cfg.icp_tolerance:
+                    if not last:
+                        break
+                    iters = it + 1            # converged: one more pass for the quality numbers
         overlap = len(qi) / n_src
         rr = r[near]
         inl = np.abs(rr) < cfg.inlier_dist
@@ -557,27 +617,37 @@ class TSDFFusion:
         return T, float(overlap), float(frac), rmse
 
     def track(self, depth_trk: np.ndarray, init_pose: np.ndarray, ref_pose: np.ndarray,
-              depth_diff: float) -> tuple[np.ndarray, float, float, float, dict]:
+              depth_diff: float, anchors: tuple[np.ndarray, np.ndarray] | None = None
+              ) -> tuple[np.ndarray, float, float, float, dict]:
         """Align a tracking-size depth image to the model ray cast at ``ref_pose`` (frame-to-model).
 
-        Returns the camera-to-world pose, overlap, inlier fraction, RMSE and timings (ms).
+        ``anchors`` are (camera-frame points, world points) correspondences. Returns the
+        camera-to-world pose, overlap, inlier fraction, RMSE and timings (ms).
         """
         t0 = time.perf_counter()
         model, normals = self.raycast(ref_pose, normals=True)
         t1 = time.perf_counter()
         init = invert_pose(ref_pose) @ init_pose          # source (current camera) -> target (ref camera)
-        T, overlap, frac, rmse = self.icp(depth_trk, model, normals, init, depth_diff)
+        anc = None
+        if anchors is not None and len(anchors[0]):
+            anc = (np.asarray(anchors[0], float), transform_points(invert_pose(ref_pose), np.asarray(anchors[1], float)))
+        T, overlap, frac, rmse = self.icp(depth_trk, model, normals, init, depth_diff, anc)
         t2 = time.perf_counter()
-        return ref_pose @ T, overlap, frac, rmse, {"raycast": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3}
+        return (orthonormalize(ref_pose @ T), overlap, frac, rmse,
+                {"raycast": (t1 - t0) * 1e3, "track": (t2 - t1) * 1e3})
 
     # -- the per-frame entry point -------------------------------------------------------------
-    def process(self, depth: np.ndarray) -> TrackResult:
+    def process(self, depth: np.ndarray, anchors: tuple[np.ndarray, np.ndarray] | None = None) -> TrackResult:
         """Track one depth frame against the model and fuse it (KinectFusion step).
 
         Parameters
         ----------
         depth : (H, W) float array
             Depth in metres (NaN or 0 invalid) of the size of ``intrinsics``.
+        anchors : (cam_pts (K, 3), world_pts (K, 3)), optional
+            Points of this frame (depth camera frame) whose world positions are known, e.g. the
+            marker centres: they join the ICP as point-to-point terms, and with three or more a
+            lost frame is relocalised from their rigid fit instead of the last good pose.
 
         Returns
         -------
@@ -614,6 +684,9 @@ class TSDFFusion:
         relocalising = self.lost
         ref = self._last_good
         pred = ref if relocalising else ref @ self._velocity
+        if anchors is not None and len(anchors[0]) >= 3 and relocalising:
+            pred = kabsch(anchors[0], anchors[1])
+        pred = orthonormalize(pred)
         d_roi_pred = self._mask_roi(d_int, self.K_int, pred)
         d_trk = downsample_depth(d_roi_pred, self.f_trk)
         ms["prep"] = (time.perf_counter() - t0) * 1e3
@@ -621,7 +694,7 @@ class TSDFFusion:
             pose, overlap, frac, rmse, tms = pred, 0.0, 0.0, np.inf, {}
         else:
             pose, overlap, frac, rmse, tms = self.track(
-                d_trk, pred, ref, cfg.relocalise_depth_diff if relocalising else cfg.depth_diff)
+                d_trk, pred, ref, cfg.relocalise_depth_diff if relocalising else cfg.depth_diff, anchors)
         ms.update(tms)
         jump = invert_pose(pred) @ pose
         jump_m = float(np.linalg.norm(jump[:3, 3]))
@@ -643,7 +716,7 @@ class TSDFFusion:
             self.results.append(res)
             return res
         self.lost = False
-        self._velocity = invert_pose(ref) @ pose if not relocalising else np.eye(4)
+        self._velocity = orthonormalize(invert_pose(ref) @ pose) if not relocalising else np.eye(4)
         self.pose = pose
         self._last_good = pose.copy()
         t1 = time.perf_counter()
