@@ -1,0 +1,405 @@
+"""The geometry pass (paper §4.1): tracking + TSDF fusion, markers and object box, sampled points.
+
+:class:`GeometryPass` consumes the frames of a ``geometry`` (or ``scan``) pass one at a time::
+
+    gp = GeometryPass(meta=reader.meta)
+    for frame in reader:
+        state = gp.add_frame(frame)        # tracking state for the GUI: ok / lost, pose, markers
+    res = gp.result()                      # mesh in the box, 100k points + normals, poses, marker frame
+
+Per frame it detects the four white circles (:mod:`appfusion.markers`), tracks the depth frame
+against the fused model with the detected circle centres as anchors once their world positions
+are known (:mod:`appfusion.fusion`), integrates it, and adds the detection to the running mean of
+the circle centres. The fusion's world frame is the first camera; as soon as one frame shows all
+four circles the marker frame is defined, the volume is limited to the object box (plus a margin),
+and :meth:`GeometryPass.result` expresses everything in the marker frame (``docs/conventions.md``).
+
+Bad input does not raise from :meth:`add_frame`: a frame without depth, with all-NaN depth, out of
+order or of the wrong size is reported (``state = "skipped"`` and a reason) and ignored.
+:meth:`result` raises a clear :class:`~appfusion.errors.EstimationError` when no frame ever showed
+the markers (use ``require_markers=False`` for the uncropped model in the first camera's frame).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import open3d as o3d
+
+from .errors import AppFusionError, EstimationError
+from .frame import Frame, Intrinsics, invert_pose, transform_points
+from .fusion import FusionConfig, TSDFFusion, blas_threads, kabsch, voxel_size_for_box
+from .markers import (MarkerConfig, MarkerDetection, MarkerTracker, ObjectBox, detect_markers,
+                      marker_config_from_meta)
+from .points import PointGrid, bilateral_filter_normals, sample_points
+
+__all__ = ["GeometryConfig", "FrameState", "GeometryResult", "GeometryPass"]
+
+
+@dataclass
+class GeometryConfig:
+    """Settings of the geometry pass.
+
+    Attributes
+    ----------
+    fusion : FusionConfig, optional
+        Tracking/fusion settings; ``voxel_size`` is replaced by :func:`voxel_size_for_box` of the
+        object box unless ``fixed_voxel`` is set.
+    fixed_voxel : bool
+        Keep ``fusion.voxel_size`` as given.
+    markers : MarkerConfig, optional
+        Default: from the session meta, else :class:`MarkerConfig` defaults.
+    marker_stream : {"ir", "rgb"} or None
+        Image to find the circles in; default IR when the frame has it.
+    box_height : float
+        Height of the object box above the plane, metres (paper: "a pre-defined size").
+    box_z_min : float or None
+        Lowest kept height (drops the plane); default max(4 mm, one voxel).
+    roi_margin : float
+        Margin around the box (and circles) within which depth is fused, metres.
+    use_anchors : bool
+        Use detected circle centres as tracking anchors.
+    n_points : int
+        Points sampled on the object's surface (paper: 100k).
+    bilateral_sigma_s : float or None
+        Spatial sigma of the normal filter, metres; default 1.5 voxels.
+    bilateral_sigma_n : float
+        Normal-difference sigma of the normal filter.
+    bilateral_iterations : int
+    min_component : float
+        Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
+        are dropped (flying fragments).
+    seed : int
+    """
+
+    fusion: FusionConfig | None = None
+    fixed_voxel: bool = False
+    markers: MarkerConfig | None = None
+    marker_stream: str | None = None
+    box_height: float = 0.30
+    box_z_min: float | None = None
+    roi_margin: float = 0.05
+    use_anchors: bool = True
+    n_points: int = 100_000
+    bilateral_sigma_s: float | None = None
+    bilateral_sigma_n: float = 0.35
+    bilateral_iterations: int = 2
+    min_component: float = 0.02
+    seed: int = 0
+
+
+@dataclass
+class FrameState:
+    """What the geometry pass says about one frame (shown live by the GUI).
+
+    Attributes
+    ----------
+    index : int
+        ``Frame.index`` of the frame.
+    timestamp : float
+    state : {"first", "ok", "lost", "skipped"}
+    pose : (4, 4) ndarray or None
+        Depth camera-to-world pose in the fusion world (the first camera); the last good pose
+        when lost; None when skipped.
+    pose_marker : (4, 4) ndarray or None
+        The same pose in the marker frame, once the markers are known.
+    markers_found : int
+        Circles detected in this frame (0..4).
+    markers_complete : bool
+        All four found forming the square.
+    reason : str
+        Why the frame is lost or skipped.
+    ms : dict
+        Milliseconds per step ("markers", "prep", "raycast", "track", "integrate").
+    """
+
+    index: int
+    timestamp: float
+    state: str
+    pose: np.ndarray | None = None
+    pose_marker: np.ndarray | None = None
+    markers_found: int = 0
+    markers_complete: bool = False
+    reason: str = ""
+    ms: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.state in ("first", "ok")
+
+
+@dataclass
+class GeometryResult:
+    """Output of the geometry pass, in the marker frame (metres).
+
+    Attributes
+    ----------
+    mesh : open3d.geometry.TriangleMesh
+        The fused surface inside the object box, with vertex normals.
+    points, normals : (N, 3) float64
+        Sampled surface points (area-proportional) and their bilateral-filtered unit normals.
+    raw_normals : (N, 3) float64
+        The normals before filtering.
+    poses : (F, 4, 4) float64
+        Depth camera-to-marker pose of every frame given (NaN for skipped frames; the last good
+        pose for lost ones).
+    states : list of FrameState
+    frame_indices : (F,) int
+    marker_to_world : (4, 4)
+        Marker frame -> fusion world (first depth camera).
+    marker_centers : (4, 3)
+        Fused circle centres 1..4 in the marker frame.
+    box : ObjectBox
+    voxel_size : float
+    spacing : float
+        Mean point spacing (``sqrt(area per point)``), metres.
+    """
+
+    mesh: o3d.geometry.TriangleMesh
+    points: np.ndarray
+    normals: np.ndarray
+    raw_normals: np.ndarray
+    poses: np.ndarray
+    states: list
+    frame_indices: np.ndarray
+    marker_to_world: np.ndarray
+    marker_centers: np.ndarray
+    box: ObjectBox
+    voxel_size: float
+    spacing: float
+    _grid: PointGrid | None = None
+
+    def grid(self, max_dist: float | None = None) -> PointGrid:
+        """The spatial grid over :attr:`points` for pixel registration (built once)."""
+        if self._grid is None or (max_dist is not None and abs(self._grid.max_dist - max_dist) > 1e-12):
+            self._grid = PointGrid(self.points, self.normals, max_dist=max_dist or 1.5 * self.spacing)
+        return self._grid
+
+    @property
+    def lost_frames(self) -> list[int]:
+        return [s.index for s in self.states if s.state == "lost"]
+
+
+class GeometryPass:
+    """KinectFusion geometry acquisition with the marker frame and object box (paper §4.1).
+
+    Parameters
+    ----------
+    config : GeometryConfig, optional
+    meta : dict, optional
+        Session meta (``SessionReader.meta``); its ``extra["markers"]`` describes the circles.
+    intrinsics : Intrinsics, optional
+        Depth intrinsics; default those of the first frame.
+    """
+
+    def __init__(self, config: GeometryConfig | None = None, meta: dict | None = None,
+                 intrinsics: Intrinsics | None = None):
+        self.config = cfg = config or GeometryConfig()
+        self.marker_config = cfg.markers or marker_config_from_meta(meta)
+        self.intrinsics = intrinsics
+        self.fusion: TSDFFusion | None = None
+        self.tracker = MarkerTracker(self.marker_config)
+        self.states: list[FrameState] = []
+        self.box: ObjectBox | None = None
+        self._last_key: tuple[int, float] | None = None
+        self._roi_set = False
+
+    # -- helpers ----------------------------------------------------------------------------------
+    def _skip(self, frame: Frame, reason: str) -> FrameState:
+        st = FrameState(getattr(frame, "index", -1), float(getattr(frame, "timestamp", np.nan)), "skipped",
+                        reason=reason)
+        self.states.append(st)
+        return st
+
+    def _voxel(self, det: MarkerDetection | None) -> float:
+        fc = self.config.fusion or FusionConfig()
+        if self.config.fixed_voxel:
+            return fc.voxel_size
+        side = self.marker_config.side_m
+        if side is None and det is not None and det.complete:
+            C = det.centers
+            side = float(np.mean([np.linalg.norm(C[i] - C[(i + 1) % 4]) for i in range(4)]))
+        return voxel_size_for_box(side if side else 0.30, self.config.box_height)
+
+    def _set_roi(self) -> None:
+        cfg, mc = self.config, self.marker_config
+        side = self.tracker.side()
+        vs = self.fusion.config.voxel_size
+        z_min = cfg.box_z_min if cfg.box_z_min is not None else max(0.004, vs)
+        self.box = ObjectBox.from_side(side, cfg.box_height, z_min)
+        m = cfg.roi_margin + mc.radius_m
+        lo = np.array([-side / 2 - m, -side / 2 - m, -cfg.roi_margin])
+        hi = np.array([side / 2 + m, side / 2 + m, cfg.box_height + cfg.roi_margin])
+        self.fusion.set_roi(invert_pose(self.tracker.marker_to_world()), lo, hi)
+        self._roi_set = True
+
+    def _anchors(self, det: MarkerDetection) -> tuple[np.ndarray, np.ndarray] | None:
+        if not (self.config.use_anchors and self.tracker.initialised and det.n):
+            return None
+        fu = self.fusion
+        W = transform_points(fu.predicted_pose(), det.centers)
+        C = self.tracker.centers
+        dist = np.linalg.norm(W[:, None] - C[None], axis=2)
+        j = dist.argmin(1)
+        # while lost the prediction may be far off: trust the numbering of a complete detection
+        if det.complete and fu.lost:
+            j = self._match_complete(det)
+            keep = np.ones(det.n, bool)
+        else:
+            keep = dist[np.arange(det.n), j] < max(3 * self.marker_config.radius_m, 0.05)
+        if keep.sum() == 0 or len(set(j[keep])) < keep.sum():
+            return None
+        return det.centers[keep], C[j[keep]]
+
+    def _match_complete(self, det: MarkerDetection) -> np.ndarray:
+        """Circle numbers of a complete detection: the cyclic shift of 1..4 that best fits the
+        fused square (the per-frame numbering may differ by a quarter turn)."""
+        C = self.tracker.centers
+        best, best_err = np.arange(4), np.inf
+        for s in range(4):
+            perm = np.roll(np.arange(4), s)
+            T = kabsch(det.centers, C[perm])
+            err = np.linalg.norm(transform_points(T, det.centers) - C[perm], axis=1).max()
+            if err < best_err:
+                best, best_err = perm, err
+        return best
+
+    # -- per frame ----------------------------------------------------------------------------------
+    def add_frame(self, frame: Frame) -> FrameState:
+        """Track, fuse and look for markers in one frame. Never raises for bad frame data: the
+        returned state says ``skipped`` and why."""
+        with blas_threads(1):
+            return self._add_frame(frame)
+
+    def _add_frame(self, frame: Frame) -> FrameState:
+        if not isinstance(frame, Frame):
+            raise AppFusionError(f"geometry pass: expected a Frame, got {type(frame).__name__}")
+        if frame.depth is None:
+            return self._skip(frame, f"frame {frame.index}: no depth image")
+        K = self.intrinsics or frame.depth_intrinsics
+        if K is None:
+            return self._skip(frame, f"frame {frame.index}: no depth intrinsics")
+        if frame.depth.shape != K.shape:
+            return self._skip(frame, f"frame {frame.index}: depth {frame.depth.shape} does not match the intrinsics {K.shape}")
+        key = (int(frame.index), float(frame.timestamp))
+        if self._last_key is not None and (key[1] < self._last_key[1] or
+                                           (key[1] == self._last_key[1] and key[0] <= self._last_key[0])):
+            return self._skip(frame, f"frame {frame.index} (t={frame.timestamp:.3f} s) is out of order: "
+                                     f"the previous frame was {self._last_key[0]} (t={self._last_key[1]:.3f} s)")
+        with np.errstate(invalid="ignore"):
+            n_valid = int(np.count_nonzero(frame.depth > 0))
+        if n_valid < 0.01 * frame.depth.size:
+            self._last_key = key
+            return self._skip(frame, f"frame {frame.index}: no valid depth ({n_valid} valid pixels)")
+        self._last_key = key
+        t0 = time.perf_counter()
+        try:
+            fr = frame if frame.depth_intrinsics is not None else frame.replace(depth_intrinsics=K)
+            det = detect_markers(fr, self.marker_config, self.config.marker_stream)
+        except AppFusionError as e:
+            det = None
+            marker_reason = str(e)
+        else:
+            marker_reason = ""
+        t_markers = (time.perf_counter() - t0) * 1e3
+        if self.fusion is None:
+            fc = replace(self.config.fusion or FusionConfig(), voxel_size=self._voxel(det))
+            self.fusion = TSDFFusion(K, fc)
+            if det is not None:
+                self.tracker.update(det, self.fusion.pose)
+                if self.tracker.initialised:
+                    self._set_roi()
+        anchors = self._anchors(det) if det is not None else None
+        res = self.fusion.process(frame.depth, anchors)
+        if det is not None and res.state in ("ok",) and self.fusion.n_frames > 1:
+            self.tracker.update(det, res.pose)
+        if self.tracker.initialised and not self._roi_set:
+            self._set_roi()
+        ms = dict(res.ms)
+        ms["markers"] = t_markers
+        pm = None
+        if self.tracker.initialised:
+            pm = invert_pose(self.tracker.marker_to_world()) @ res.pose
+        reason = res.reason or marker_reason
+        st = FrameState(frame.index, float(frame.timestamp), res.state, res.pose.copy(), pm,
+                        0 if det is None else det.n, bool(det is not None and det.complete), reason, ms)
+        self.states.append(st)
+        return st
+
+    # -- results -----------------------------------------------------------------------------------
+    @property
+    def marker_to_world(self) -> np.ndarray:
+        """Marker frame -> fusion world (first camera); raises until the markers have been seen."""
+        if not self.tracker.initialised:
+            raise EstimationError("geometry pass: no frame has shown all four white circles yet")
+        return self.tracker.marker_to_world()
+
+    def result(self, n_points: int | None = None, require_markers: bool = True) -> GeometryResult:
+        """Mesh cropped to the object box, sampled points with filtered normals, poses, marker frame.
+
+        Parameters
+        ----------
+        n_points : int, optional
+            Default ``config.n_points``.
+        require_markers : bool
+            Without markers: raise (default), or return the whole model in the first camera's frame.
+        """
+        cfg = self.config
+        if self.fusion is None or self.fusion._n_integrated == 0:
+            reasons = sorted({s.reason for s in self.states if s.reason})[:3]
+            raise EstimationError("geometry pass: no frame could be fused"
+                                  + (f" ({'; '.join(reasons)})" if reasons else " (no frames given)"))
+        if self.tracker.initialised:
+            M2W = self.tracker.marker_to_world()
+            box = self.box
+        elif require_markers:
+            raise EstimationError(
+                f"geometry pass: the four white circles were never seen together in {len(self.states)} frames "
+                f"(radius {self.marker_config.radius_m * 1e3:.0f} mm"
+                + ("" if self.marker_config.side_m is None else f", square side {self.marker_config.side_m * 1e3:.0f} mm")
+                + "), so there is no marker frame and no object box; check the markers are in view and the "
+                  "session meta 'markers' entry")
+        else:
+            M2W = np.eye(4)
+            box = None
+        W2M = invert_pose(M2W)
+        mesh = self.fusion.extract_mesh()
+        mesh.transform(W2M)
+        if box is not None:
+            mesh = box.crop_mesh(mesh)
+            mesh = _drop_small_components(mesh, cfg.min_component)
+        if len(mesh.triangles) == 0:
+            raise EstimationError("geometry pass: the fused surface inside the object box is empty "
+                                  "(is the object inside the square of circles, and was it in view?)")
+        mesh.compute_vertex_normals()
+        n = int(n_points or cfg.n_points)
+        P, Nraw = sample_points(mesh, n, seed=cfg.seed)
+        area = mesh.get_surface_area()
+        spacing = float(np.sqrt(area / n))
+        vs = self.fusion.config.voxel_size
+        sig = cfg.bilateral_sigma_s or 1.5 * vs
+        Nf = bilateral_filter_normals(P, Nraw, sigma_s=sig, sigma_n=cfg.bilateral_sigma_n,
+                                      iterations=cfg.bilateral_iterations, seed=cfg.seed)
+        poses = np.full((len(self.states), 4, 4), np.nan)
+        for i, s in enumerate(self.states):
+            if s.pose is not None:
+                poses[i] = W2M @ s.pose
+        C = transform_points(W2M, self.tracker.centers) if self.tracker.initialised else np.full((4, 3), np.nan)
+        return GeometryResult(mesh=mesh, points=P, normals=Nf, raw_normals=Nraw, poses=poses, states=list(self.states),
+                              frame_indices=np.array([s.index for s in self.states]), marker_to_world=M2W,
+                              marker_centers=C, box=box, voxel_size=vs, spacing=spacing)
+
+
+def _drop_small_components(mesh: o3d.geometry.TriangleMesh, min_fraction: float) -> o3d.geometry.TriangleMesh:
+    """Remove connected pieces with fewer triangles than ``min_fraction`` of the largest one."""
+    if len(mesh.triangles) == 0 or min_fraction <= 0:
+        return mesh
+    labels, counts, _ = mesh.cluster_connected_triangles()
+    labels, counts = np.asarray(labels), np.asarray(counts)
+    small = counts < min_fraction * counts.max()
+    if small.any():
+        mesh.remove_triangles_by_mask(small[labels])
+        mesh.remove_unreferenced_vertices()
+    return mesh
