@@ -352,7 +352,11 @@ class Environment:
 
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        img = self.to_latlong(height)
+        key = (self.name, repr(self.to_json()), height)
+        if key not in _RASTER_CACHE:
+            _RASTER_CACHE.clear() if len(_RASTER_CACHE) > 4 else None
+            _RASTER_CACHE[key] = self.to_latlong(height)
+        img = _RASTER_CACHE[key]
         bgr = np.ascontiguousarray(img[..., ::-1])
         paths = {}
         for ext in ("exr", "hdr"):
@@ -367,6 +371,9 @@ class Environment:
         return {"name": self.name, "params": self.params, "emitters": [e.to_json() for e in self.emitters],
                 "latlong": "row 0 = zenith (+z), column 0 at azimuth -pi, x = cos(phi) sin(theta), "
                            "y = sin(phi) sin(theta), z = cos(theta)"}
+
+
+_RASTER_CACHE: dict = {}
 
 
 def load_latlong(path: str | os.PathLike) -> np.ndarray:

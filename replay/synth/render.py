@@ -71,6 +71,16 @@ class Quality:
     def to_json(self) -> dict:
         return dict(self.__dict__)
 
+    @classmethod
+    def preset(cls, name: str) -> "Quality":
+        """``"full"``: the defaults (render error below 0.5%); ``"test"``: coarse and fast (unit tests)."""
+        if name == "full":
+            return cls()
+        if name == "test":
+            return cls(q_up=12, q_down=12, emitter_cell_deg=4.0, plane_fine_m=0.01, plane_coarse_m=0.06,
+                       lobe_pilot=4, lobe_samples=16, marker_rings=2, marker_sectors=6, ball_supersample=2)
+        raise AppFusionError(f"unknown quality preset {name!r} (known: full, test)")
+
 
 # -- analytic geometry ------------------------------------------------------------------------------
 

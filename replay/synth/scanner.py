@@ -254,8 +254,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     device : {"kinect1", "allinone"}
     detail : {"full", "test"}
         Mesh resolution (``test``: ~5k triangles, for fast tests).
-    quality : Quality, optional
-        Integration settings.
+    quality : Quality or {"full", "test"}, optional
+        Integration settings (default: the preset named like ``detail``).
     radius_m : float
         Orbit radius (0.4-1.0 m is what a person does).
     references : bool
@@ -281,7 +281,10 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     if not 1 <= frames <= 100000:
         raise AppFusionError(f"frames per pass must be >= 1, got {frames}")
     w, h = _parse_size(size)
-    quality = quality or Quality()
+    if quality is None:
+        quality = Quality.preset("test" if detail == "test" else "full")
+    elif isinstance(quality, str):
+        quality = Quality.preset(quality)
     say = log or (lambda s: None)
     out = Path(out)
 

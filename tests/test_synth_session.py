@@ -1,0 +1,133 @@
+"""Synthetic scanner: whole sessions (format, passes, truth, determinism) and the CLI."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from appfusion.cli import main
+from replay.session import SessionReader, parse_groundtruth
+from replay.synth import render_session
+from replay.synth.scanner import CALIB_DISTANCES_M, CALIB_FRAMES_EACH, CALIB_OFF_FRAMES
+
+N_CALIB = CALIB_OFF_FRAMES + len(CALIB_DISTANCES_M) * CALIB_FRAMES_EACH
+SIZE = (80, 60)
+
+
+def _digest(path):
+    h = hashlib.sha256()
+    for f in sorted(p for p in path.rglob("*") if p.is_file() and p.suffix in (".png", ".txt", ".npz", ".exr")):
+        if f.name == "scene.json":
+            continue
+        h.update(f.relative_to(path).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def kinect_session(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth") / "two"
+    return render_session("two-material", out, frames=3, size=SIZE, seed=4, detail="test", show_progress=False)
+
+
+def test_session_reads_back_with_passes_events_and_streams(kinect_session):
+    r = SessionReader(kinect_session)
+    assert len(r) == N_CALIB + 3 * 3
+    passes = [v for _, k, v in r.events if k == "pass"]
+    assert passes == ["ir-calibration", "environment", "geometry", "rgb"]
+    assert [v for _, k, v in r.events if k == "emitter"] == ["off", "on"]
+    assert r.meta["extra"]["markers"] == {"radius_m": 0.025, "layout": "square", "side_m": 0.30}
+    assert r.intrinsics["depth"].width == SIZE[0] and r.intrinsics["rgb"].fx == pytest.approx(525 * SIZE[0] / 640)
+    np.testing.assert_allclose(r.depth_to_rgb[:3, 3], [-0.025, 0, 0])
+    assert r.meta["emitter_position_m"] == [0.075, 0.0, 0.0]
+    want = {"ir-calibration": {"depth", "ir"}, "environment": {"depth", "rgb"}, "geometry": {"depth", "ir"},
+            "rgb": {"depth", "rgb"}}
+    seen = {}
+    for f in r:
+        assert f.pose is None  # the engine never gets poses from the session
+        seen.setdefault(f.pass_name, set()).update(f.streams)
+        assert set(f.streams) == want[f.pass_name]
+        if f.pass_name == "ir-calibration" and not f.emitter:
+            assert np.isnan(f.depth).all() and f.ir.max() < 80
+    assert seen.keys() == want.keys()
+
+
+def test_truth_folder(kinect_session):
+    t = kinect_session / "truth"
+    r = SessionReader(kinect_session)
+    times, poses, bad, _ = parse_groundtruth((t / "groundtruth.txt").read_bytes())
+    assert not bad and len(times) == len(r)
+    np.testing.assert_allclose(times, r.timestamps, atol=1e-6)
+    assert np.allclose(np.diff(times[:5]), 1 / 30, atol=1e-6)
+    # poses look at the object from 0.4-1 m during the object passes
+    sc = json.loads((t / "scene.json").read_text())
+    assert sc["seed"] == 4 and sc["scene"] == "two-material"
+    obj = np.load(t / "object.npz")
+    assert set(obj.files) >= {"vertices", "faces", "vertex_normals", "rho_d", "material_id", "ir_rho_d"}
+    assert obj["rho_d"].shape == obj["vertices"].shape and set(np.unique(obj["material_id"])) == {0, 1}
+    assert np.allclose(np.linalg.norm(obj["vertex_normals"], axis=1), 1.0)
+    mats = json.loads((t / "materials.json").read_text())["materials"]
+    assert [m["lobe"] for m in mats] == ["ward", "ward"] and mats[1]["alpha"] == 0.06
+    mk = json.loads((t / "markers.json").read_text())
+    assert mk["centres_m"][0] == [0.15, 0.15, 0.0] and mk["centres_m"][2] == [-0.15, -0.15, 0.0]
+    assert len(mk["white_radiance_rgb"]["object"]) == 4
+    ir = json.loads((t / "ir_model.json").read_text())
+    assert ir["k"] == 1.6 and ir["theta"] == 2.8 and ir["gamma"] == 0.9 and ir["gain"] > 0
+    from replay.synth.envmaps import load_latlong
+
+    for name in ("office", "sunset"):
+        exr, hdr = load_latlong(t / "envmaps" / f"{name}.exr"), load_latlong(t / "envmaps" / f"{name}.hdr")
+        assert exr.shape == (256, 512, 3) and hdr.shape == (256, 512, 3)
+        assert np.median(np.abs(hdr / np.maximum(exr, 1e-6) - 1)) < 0.01  # RGBE keeps ~1% precision
+    views = json.loads((t / "references" / "views.json").read_text())
+    assert len(views["views"]) == 3 and views["environment"] == "sunset"
+    ref = load_latlong(t / "references" / "view-1.exr")
+    assert ref.shape == (SIZE[1], SIZE[0], 3) and ref.max() > 0
+    frames = json.loads((t / "frames.json").read_text())["frames"]
+    rgbf = [f for f in frames if "exposure" in f]
+    assert rgbf and all(len(f["wb_gains"]) == 3 for f in rgbf)
+    assert sum("sheet_distance_m" in f for f in frames) == len(CALIB_DISTANCES_M) * CALIB_FRAMES_EACH
+
+
+def test_markers_visible_and_unsaturated(kinect_session):
+    """The white circles are the white reference: in most RGB frames at least one is seen unsaturated."""
+    r = SessionReader(kinect_session)
+    ok = 0
+    n = 0
+    for f in r:
+        if f.rgb is None:
+            continue
+        n += 1
+        bright = f.rgb.max(axis=2)
+        ok += int((bright > 60).sum() > 3 and (bright >= 255).sum() == 0)
+    assert n == 6 and ok >= 5
+
+
+def test_same_seed_same_bytes(kinect_session, tmp_path):
+    again = render_session("two-material", tmp_path / "again", frames=3, size=SIZE, seed=4, detail="test",
+                           show_progress=False)
+    assert _digest(again) == _digest(kinect_session)
+
+
+def test_allinone_device_streams_everything_every_frame(tmp_path):
+    p = render_session("sphere", tmp_path / "aio", frames=1, size=SIZE, seed=1, detail="test", device="allinone",
+                       references=False, show_progress=False)
+    r = SessionReader(p)
+    assert [v for _, k, v in r.events if k == "pass"] == ["ir-calibration", "environment", "scan"]
+    assert r.caps.ir_and_rgb_together
+    for f in r:
+        assert set(f.streams) == {"depth", "ir", "rgb"}
+
+
+def test_cli_list_and_errors(tmp_path, capsys):
+    assert main(["synth", "list"]) == 0
+    out = capsys.readouterr().out
+    for name in ("sphere", "vase", "pepper", "two-material", "ggx-sphere"):
+        assert name in out
+    assert main(["synth", "teapot", str(tmp_path / "x")]) == 2
+    assert "unknown synthetic scene 'teapot'" in capsys.readouterr().err
+    assert main(["synth", "sphere", str(tmp_path / "y"), "--size", "640by480"]) == 2
+    assert "--size" in capsys.readouterr().err
