@@ -81,3 +81,42 @@ def render_error(scene: str = "two-material", n_pixels: int = 200, frames: int =
             "mean_specular_fraction": float(spec_frac.mean()), "max_specular_fraction": float(spec_frac.max()),
             "precompute_s": t_pre, "fast_s_per_pixel": t_fast / max(npx, 1), "reference_s": t_ref,
             "quality": quality.to_json(), "factor": factor, "size": list(size)}
+
+
+def frame_timing(scene: str = "two-material", size=(320, 240), frames: int = 3, seed: int = 0, detail: str = "full",
+                 quality: Quality | None = None, cache_dir=None) -> dict:
+    """Seconds to render one frame of every stream (depth + IR from the depth camera, RGB from the RGB
+    camera, camera models included, PNG writing excluded) of the object pass, averaged over ``frames``
+    poses after one warm-up frame; the light transport precomputation is timed apart."""
+    from .render import shade_object  # noqa: F401  (imported for symmetry with render_error)
+    from .scanner import render_depth_ir, render_radiance
+    from .sensors import DepthModel, IRModel, RGBModel
+
+    quality = quality or Quality()
+    obj = build_object(scene, detail, seed)
+    sc = Scene(envmaps.office(), obj=obj, plane=SupportPlane(), quality=quality)
+    t0 = time.perf_counter()
+    sc.ensure_lighting(cache_dir=cache_dir)
+    t_pre = time.perf_counter() - t0
+    w, h = size
+    di, ri = C.depth_intrinsics(w, h), C.rgb_intrinsics(w, h)
+    off = np.linalg.inv(C.depth_to_rgb())
+    _, poses = C.orbit_path(frames + 1, seed, C.PathParams(target_height_m=0.5 * float(obj.vertices[:, 2].max())))
+    dm, ir, cam = DepthModel(), IRModel(seed=seed), RGBModel(seed=seed)
+    ir.pattern()
+    rng = np.random.default_rng(seed)
+    t_d, t_r, px = [], [], []
+    for k in range(frames + 1):
+        t0 = time.perf_counter()
+        render_depth_ir(sc, poses[k], di, dm, ir, rng, rng)
+        t1 = time.perf_counter()
+        L, kind = render_radiance(sc, poses[k] @ off, ri, rng)
+        cam.capture(L, 1.0, np.ones(3), rng)
+        t2 = time.perf_counter()
+        if k:
+            t_d.append(t1 - t0)
+            t_r.append(t2 - t1)
+            px.append(int((kind == KIND_OBJECT).sum()))
+    return {"scene": scene, "size": list(size), "depth_ir_s": float(np.mean(t_d)), "rgb_s": float(np.mean(t_r)),
+            "all_streams_s": float(np.mean(t_d) + np.mean(t_r)), "object_pixels": float(np.mean(px)),
+            "precompute_s": t_pre}

@@ -101,6 +101,7 @@ class RectEmitter:
         a, b, c, d = P[:-1, :-1], P[1:, :-1], P[1:, 1:], P[:-1, 1:]
         dw = triangle_solid_angle(a, b, c) + triangle_solid_angle(a, c, d)
         centres = 0.25 * (a + b + c + d)
+        self.grid_shape = (nu, nv)
         return _normalize(centres).reshape(-1, 3), dw.reshape(-1)
 
     def solid_angle(self) -> float:
@@ -153,6 +154,7 @@ class DiscEmitter:
         b = np.cross(self.direction, t)
         d = (np.cos(R)[..., None] * self.direction + np.sin(R)[..., None] * (np.cos(P)[..., None] * t
                                                                              + np.sin(P)[..., None] * b))
+        self.grid_shape = (nr, ns)
         return d.reshape(-1, 3), np.repeat(dw_ring, ns)
 
     def solid_angle(self) -> float:
@@ -313,6 +315,19 @@ class Environment:
         if not dirs:
             return np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
         return np.concatenate(dirs), np.concatenate(dws), np.concatenate(Ls), np.concatenate(idx)
+
+    def emitter_groups(self, cell_deg: float, block: int) -> np.ndarray:
+        """Coarse group of every cell of :meth:`emitter_cells`: blocks of ``block`` x ``block`` cells of
+        each emitter's cell grid (global group ids, (K,) int64)."""
+        out, base = [], 0
+        for e in self.emitters:
+            e.cells(cell_deg)
+            nu, nv = e.grid_shape
+            gu, gv = -(-nu // block), -(-nv // block)
+            I, J = np.meshgrid(np.arange(nu) // block, np.arange(nv) // block, indexing="ij")
+            out.append(base + (I * gv + J).ravel())
+            base += gu * gv
+        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
 
     # -- rasterisation and files -----------------------------------------------------------------
     def to_latlong(self, height: int = 256, width: int | None = None, ss_bg: int = 3, ss_em: int = 8) -> np.ndarray:

@@ -65,6 +65,8 @@ class Quality:
     plane_coarse_m: float = 0.04    # ... at the plane's edge
     ball_supersample: int = 4       # sub-pixels per axis on the mirror ball
     skip_rel: float = 1e-4          # emitter skipped below this fraction of the diffuse radiance
+    coarse_block: int = 3           # far from a lobe's peak, emitter cells are summed in 3 x 3 groups
+    coarse_far: float = 3.0         # ... where the half-vector angle exceeds this many group radii
     marker_rings: int = 4           # quadrature of each white circle (as a small area light)
     marker_sectors: int = 12
 
@@ -413,6 +415,7 @@ class Lighting:
         self.q_dirs, self.q_dw = hemisphere_cells(q.q_up, q.q_down)
         self.q_bg = env.background_exact(self.q_dirs)
         self.e_dirs, self.e_dw, self.e_L, self.e_idx = env.emitter_cells(q.emitter_cell_deg)
+        self._coarse_cells(q.coarse_block)
         self.m_pts = np.zeros((0, 3))
         self.m_dA = np.zeros(0)
         self.m_dL = np.zeros((0, 3))
@@ -434,12 +437,39 @@ class Lighting:
                 ke = len(self.e_dw)
                 self.vert_vis = np.unpackbits(arrays["vert_vis_bits"], axis=1, count=ke)
                 self.vert_mvis = np.unpackbits(arrays["vert_mvis_bits"], axis=1, count=len(self.m_dA))
+                self.vert_cvis = self.coarse_visibility(self.vert_vis).astype(np.float32)
         else:
             if scene.plane is not None:
                 self._plane_irradiance()
             if scene.obj is not None:
                 self._vertex_lighting()
         self.seconds = time.perf_counter() - t0
+
+    def _coarse_cells(self, block: int):
+        """Groups of block x block emitter cells for pixels far from the lobe's peak (see shade_object)."""
+        g = self.scene.env.emitter_groups(self.scene.quality.emitter_cell_deg, block)
+        self.e_group = g
+        kc = int(g.max()) + 1 if len(g) else 0
+        self.c_dw = np.bincount(g, weights=self.e_dw, minlength=kc)
+        cd = np.stack([np.bincount(g, weights=self.e_dirs[:, c] * self.e_dw, minlength=kc) for c in range(3)], 1)
+        self.c_dirs = cd / np.linalg.norm(cd, axis=1, keepdims=True)
+        self.c_idx = np.zeros(kc, dtype=np.int64)
+        self.c_idx[g] = self.e_idx
+        self.c_L = np.zeros((kc, 3))
+        self.c_L[g] = self.e_L
+        # each group's angular size (the largest distance of its cells' directions from its centre)
+        self.c_rad = np.zeros(kc)
+        np.maximum.at(self.c_rad, g, np.arccos(np.clip(np.einsum("ij,ij->i", self.e_dirs, self.c_dirs[g]), -1, 1)))
+
+    def coarse_visibility(self, vis_fine: np.ndarray) -> np.ndarray:
+        """Solid-angle-weighted visibility of the coarse groups from fine cell visibility (..., K)."""
+        from scipy.sparse import csr_matrix
+
+        kc = len(self.c_dw)
+        G = csr_matrix((self.e_dw, (np.arange(len(self.e_dw)), self.e_group)), shape=(len(self.e_dw), kc))
+        shp = vis_fine.shape
+        out = (G.T @ vis_fine.reshape(-1, shp[-1]).T.astype(np.float64)).T / self.c_dw
+        return out.reshape(shp[:-1] + (kc,))
 
     def arrays(self) -> dict:
         """What :meth:`Scene.ensure_lighting` caches."""
@@ -704,6 +734,7 @@ class Lighting:
                 E += (np.maximum(cm, 0.0) * dOm * mv) @ self.m_dL
             self.vert_E[sl] = E
         self.stats["vertex_rays"] = n_rays
+        self.vert_cvis = self.coarse_visibility(self.vert_vis).astype(np.float32)
         self.stats["vertex_pairs"] = int(V * (kq // 2 + ke))
 
     def interpolate(self, prim: np.ndarray, bary: np.ndarray, arr: np.ndarray) -> np.ndarray:
@@ -760,21 +791,25 @@ def shade_object(scene: Scene, hits: Hits, sel: np.ndarray, cam_centre: np.ndarr
         # --- emitters
         for ei, em in enumerate(scene.env.emitters):
             cells = np.nonzero(lt.e_idx == ei)[0]
+            ccells = np.nonzero(lt.c_idx == ei)[0]
             ang = np.arccos(np.clip(r[sm] @ em.center_dir, -1, 1))
             th_min = np.maximum(ang - np.arccos(em.cone_cos), 0.0) / 2
             bound = (rs.max() * em.radiance.max() * em.solid_angle()
                      * M.lobe_fcos_bound(mt.lobe, mt.alpha, np.cos(th_min), co[sm]))
-            need = sm[bound > q.skip_rel * ref_lum[sm]]
-            for s in range(0, len(need), 2048):
-                ix = need[s:s + 2048]
-                vis = np.einsum("nk,nkj->nj", bary[ix], lt.vert_vis[f_tri[ix]][:, :, cells].astype(np.float32))
-                D = lt.e_dirs[cells]
-                nn = np.broadcast_to(n[ix, None, :], (len(ix), len(cells), 3))
-                ww = np.broadcast_to(wo[ix, None, :], nn.shape)
-                dd = np.broadcast_to(D[None], nn.shape)
-                f = M.lobe_eval(mt.lobe, mt.alpha, dd, ww, nn)
-                c = np.maximum(n[ix] @ D.T, 0.0)
-                spec_e[ix] += (vis * f * c * lt.e_dw[cells]).sum(axis=1)[:, None] * em.radiance * rs
+            need = bound > q.skip_rel * ref_lum[sm]
+            # far from the lobe's peak the lobe is smooth over a group of cells: sum the groups instead
+            far = th_min >= q.coarse_far * lt.c_rad[ccells].max()
+            for sub, cl, D, dw, V in ((sm[need & ~far], cells, lt.e_dirs, lt.e_dw, lt.vert_vis),
+                                      (sm[need & far], ccells, lt.c_dirs, lt.c_dw, lt.vert_cvis)):
+                for s0 in range(0, len(sub), 2048):
+                    ix = sub[s0:s0 + 2048]
+                    vis = np.einsum("nk,nkj->nj", bary[ix], V[f_tri[ix]][:, :, cl].astype(np.float32))
+                    Dc = D[cl]
+                    nn = np.broadcast_to(n[ix, None, :], (len(ix), len(cl), 3))
+                    ww = np.broadcast_to(wo[ix, None, :], nn.shape)
+                    f = M.lobe_eval(mt.lobe, mt.alpha, np.broadcast_to(Dc[None], nn.shape), ww, nn)
+                    c = np.maximum(n[ix] @ Dc.T, 0.0)
+                    spec_e[ix] += (vis * f * c * dw[cl]).sum(axis=1)[:, None] * em.radiance * rs
         # --- the white circles (small area lights on the plane)
         if len(lt.m_dA):
             per = len(lt.m_dA) // 4
