@@ -213,7 +213,7 @@ def voxel_size_for_box(side_m: float, height_m: float = 0.30) -> float:
         Box side (the marker square) and height, metres.
     """
     size = max(float(side_m), float(height_m))
-    if not np.isfinite(size) or size <= 0:
+    if not (np.isfinite(size) and float(side_m) > 0 and float(height_m) > 0):
         raise AppFusionError(f"voxel_size_for_box: box size must be positive, got side={side_m}, height={height_m}")
     return float(np.clip(0.004 * size / 0.30, 0.002, 0.012))
 

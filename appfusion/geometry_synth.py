@@ -200,7 +200,7 @@ def make_sequence(n_frames: int = 30, width: int = 320, height: int = 240, seed:
         n_up = np.where((nrm_c @ light)[..., None] > 0, nrm_c, nrm_c)
         shade = 0.25 + 0.55 * np.clip(n_up @ light, 0, None)
         gain = (np.array([1.0, 1.0, 1.0]) if not colour_cast else
-                rng.uniform(0.6, 1.3) * np.array([rng.uniform(0.8, 1.2), 1.0, rng.uniform(0.7, 1.2)]))
+                rng.uniform(0.5, 1.0) * np.array([rng.uniform(0.8, 1.2), 1.0, rng.uniform(0.75, 1.2)]))
         gains.append(gain)
         rgb = np.clip(alb * shade[..., None] * gain, 0, 1)
         rgb += rng.normal(size=rgb.shape) * 0.003
