@@ -172,6 +172,13 @@ def detect_circles(image: np.ndarray, min_radius_px: float = 2.5, max_radius_px:
             hull = cv2.convexHull(c)
             if area < 0.9 * cv2.contourArea(hull):
                 continue
+            # every boundary point on the fitted ellipse (a square or a blob with corners is not)
+            th = np.deg2rad(ang)
+            dx, dy = pts[:, 0] - cx, pts[:, 1] - cy
+            xr = (np.cos(th) * dx + np.sin(th) * dy) / (a2 / 2)
+            yr = (-np.sin(th) * dx + np.cos(th) * dy) / (b2 / 2)
+            if np.hypot(xr, yr).std() > 0.045 + 0.12 / max(b, 1.0):   # a square: ~0.1 at any size
+                continue
             cands.append((Ellipse(np.array([cx, cy]), np.array([a, b]), float(ang), pts, float(fill)), lev))
     # one ellipse per blob: the level closest to half of the blob's peak brightness, where the
     # blurred edge of a uniform disc crosses (the contour there has the true size)

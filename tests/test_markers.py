@@ -1,0 +1,196 @@
+"""Tests of appfusion.markers: circle detection, support plane, marker frame, object box (§4.1)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from appfusion.errors import AppFusionError, EstimationError
+from appfusion.frame import Intrinsics, invert_pose, make_pose, transform_points
+from appfusion.geometry_synth import make_sequence
+from appfusion.markers import (MarkerConfig, MarkerDetection, MarkerTracker, ObjectBox, circle_on_plane,
+                               detect_circles, detect_markers, fit_plane_ransac, marker_config_from_meta,
+                               marker_frame, number_square)
+
+K = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
+SQUARE = np.array([[0.15, 0.15, 0], [0.15, -0.15, 0], [-0.15, -0.15, 0], [-0.15, 0.15, 0]], float)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return make_sequence(30, 320, 240, seed=1)
+
+
+def _random_marker_pose(rng) -> np.ndarray:
+    """Marker-to-camera transform with the plane facing the camera (z towards it)."""
+    R = o3d.geometry.get_rotation_matrix_from_xyz((np.pi + rng.uniform(-0.8, -0.3), rng.uniform(-0.3, 0.3),
+                                                   rng.uniform(-np.pi, np.pi)))
+    return make_pose(R, [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), rng.uniform(0.6, 0.9)])
+
+
+def test_detect_circles_finds_ellipses_and_rejects_other_shapes():
+    img = np.zeros((240, 320), np.float32)
+    truth = [((80.3, 60.7), (14, 9), 20.0), ((220.6, 150.2), (10, 10), 0.0), ((150.1, 200.4), (8, 5), -35.0)]
+    big = np.zeros((240 * 8, 320 * 8), np.uint8)
+    for (cx, cy), (a, b), ang in truth:                  # draw 8x finer then area-average: true edges
+        cv2.ellipse(big, (int(cx * 8 + 3.5), int(cy * 8 + 3.5)), (a * 8, b * 8), ang, 0, 360, 255, -1)
+    img += cv2.resize(big.astype(np.float32) / 255, (320, 240), interpolation=cv2.INTER_AREA)
+    img[20:40, 250:270] = 1.0                            # a bright square
+    img[100:102, 20:140] = 1.0                           # a thin bright line
+    img += np.random.default_rng(0).normal(0, 0.01, img.shape).astype(np.float32)
+    found = detect_circles(img, min_radius_px=3)
+    assert len(found) == 3
+    for (cx, cy), (a, b), _ in truth:
+        e = min(found, key=lambda e: np.hypot(*(e.center - (cx, cy))))
+        assert np.hypot(*(e.center - (cx, cy))) < 0.3
+        assert e.axes[0] == pytest.approx(a, abs=0.8) and e.axes[1] == pytest.approx(b, abs=0.8)
+
+
+def test_fit_plane_ransac_with_outliers():
+    rng = np.random.default_rng(2)
+    n = np.array([0.2, -0.3, 0.93])
+    n /= np.linalg.norm(n)
+    e1 = np.cross(n, [1, 0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    uv = rng.uniform(-0.2, 0.2, (800, 2))
+    P = np.array([0.0, 0.0, 0.8]) + uv[:, :1] * e1 + uv[:, 1:] * e2 + rng.normal(0, 0.001, (800, 1)) * n
+    out = rng.uniform(-0.3, 0.3, (300, 3)) + [0, 0, 0.8]
+    normal, d, inl = fit_plane_ransac(np.vstack([P, out, [[np.nan] * 3]]))
+    assert abs(abs(normal @ n) - 1) < 1e-4
+    assert abs(abs(d) - abs(-n @ [0, 0, 0.8])) < 1e-3
+    assert inl[:800].mean() > 0.97 and inl[800:1100].mean() < 0.1 and not inl[-1]
+    with pytest.raises(EstimationError):
+        fit_plane_ransac(np.zeros((5, 3)))
+
+
+def test_circle_on_plane_is_exact():
+    """The 3-D centre from the back-projected contour is exact (the ellipse centre is not)."""
+    rng = np.random.default_rng(3)
+    T = _random_marker_pose(rng)
+    c_m = np.array([0.12, -0.08, 0.0])
+    ang = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    ring = c_m + 0.02 * np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1)
+    uv, _ = K.project(transform_points(T, ring))
+    n = T[:3, 2]
+    d = -n @ T[:3, 3]
+    c, r, rms = circle_on_plane(uv, K, n, d)
+    assert np.linalg.norm(c - transform_points(T, c_m[None])[0]) < 1e-6
+    pix = np.median(transform_points(T, ring)[:, 2]) / K.fx
+    assert r - 0.5 * pix == pytest.approx(0.02, abs=1e-6)
+    assert rms < 1e-6
+    # the image ellipse's centre is measurably off the projected centre
+    (ex, ey), _, _ = cv2.fitEllipse(uv.astype(np.float32))
+    assert np.hypot(*(np.array([ex, ey]) - K.project(transform_points(T, c_m[None]))[0][0])) > 0.01
+
+
+def test_numbering_and_marker_frame_conventions():
+    rng = np.random.default_rng(4)
+    for _ in range(10):
+        T = _random_marker_pose(rng)                       # marker -> camera
+        C = transform_points(T, SQUARE)
+        perm = rng.permutation(4)
+        # x hint within 40 degrees of the marker x axis
+        a = rng.uniform(-0.7, 0.7)
+        hint = np.cos(a) * T[:3, 0] + np.sin(a) * T[:3, 1]
+        order = number_square(C[perm], T[:3, 2], hint)
+        assert np.array_equal(perm[order], np.arange(4))
+        F = marker_frame(C[perm][order], T[:3, 2])
+        assert np.allclose(F, T, atol=1e-9)
+        assert np.allclose(marker_frame(C), T, atol=1e-9)    # normal from the numbering
+    # a hint turned by 90 degrees numbers from the next circle: the square's symmetry
+    T = _random_marker_pose(rng)
+    C = transform_points(T, SQUARE)
+    assert np.array_equal(number_square(C, T[:3, 2], T[:3, 1]), [3, 0, 1, 2])
+
+
+def test_detect_markers_on_sequence(seq):
+    cfg = marker_config_from_meta({"extra": seq.meta_extra})
+    for stream in ("ir", "rgb"):
+        complete, errs = [], []
+        for f in seq.frames:
+            det = detect_markers(f, cfg, stream=stream)
+            complete.append(det.complete)
+            if det.complete:
+                W = transform_points(f.pose, det.centers)
+                errs.append(np.linalg.norm(W - seq.marker_centers, axis=1).max())
+                assert np.degrees(np.arccos(f.pose[:3, :3] @ det.normal @ [0, 0, 1])) < 1.0
+                assert np.allclose(det.radii, cfg.radius_m, rtol=0.2)
+        vis = seq.markers_visible.all(1)
+        assert np.mean(np.array(complete)[vis]) >= 0.99, stream
+        assert np.median(errs) < 0.001 and max(errs) < 0.003, stream
+
+
+def test_detect_markers_partial_and_none(seq):
+    f = seq.frames[4]
+    cfg = MarkerConfig(radius_m=seq.marker_radius, side_m=seq.side)
+    # hide circle 3 (index 2) in the IR image
+    uv, _ = f.ir_intrinsics.project(transform_points(invert_pose(f.pose), seq.marker_centers[[2]]))
+    ir = f.ir.copy()
+    cv2.circle(ir, tuple(int(x) for x in np.rint(uv[0])), 14, 0.0, -1)
+    det = detect_markers(f.replace(ir=ir), cfg)
+    assert det.n == 3 and not det.complete
+    tr = MarkerTracker(cfg)
+    assert (tr.update(det, f.pose) == -1).all() and not tr.initialised   # partial cannot initialise
+    full = detect_markers(f, cfg)
+    assert full.complete
+    assert np.array_equal(tr.update(full, f.pose), np.arange(4))
+    assign = tr.update(det, f.pose)
+    assert sorted(assign) == [0, 1, 3]
+    assert tr.counts.tolist() == [2, 2, 1, 2]
+    # nothing bright: an empty detection, no error
+    none = detect_markers(f.replace(ir=np.zeros_like(f.ir)), cfg)
+    assert none.n == 0 and not none.complete
+    with pytest.raises(AppFusionError, match="no rgb image"):
+        detect_markers(f.replace(rgb=None), cfg, stream="rgb")
+    with pytest.raises(AppFusionError, match="needs depth"):
+        detect_markers(f.replace(depth=None), cfg)
+
+
+def test_marker_tracker_running_mean():
+    rng = np.random.default_rng(5)
+    cfg = MarkerConfig(radius_m=0.02, side_m=0.3)
+    world = _random_marker_pose(rng)                          # marker -> world
+    truth = transform_points(world, SQUARE)
+    tr = MarkerTracker(cfg)
+    with pytest.raises(EstimationError):
+        _ = tr.centers
+    for _ in range(200):
+        pose = make_pose(o3d.geometry.get_rotation_matrix_from_xyz(rng.normal(0, 0.3, 3)), rng.normal(0, 0.1, 3))
+        cam = transform_points(invert_pose(pose), truth) + rng.normal(0, 0.001, (4, 3))
+        det = MarkerDetection(cam, np.full(4, 0.02), np.zeros((4, 2)), invert_pose(pose)[:3, :3] @ world[:3, 2],
+                              0.0, True, "ir")
+        tr.update(det, pose)
+    assert np.linalg.norm(tr.centers - truth, axis=1).max() < 0.0004
+    assert np.allclose(tr.marker_to_world(), world, atol=5e-4)
+    assert tr.side() == pytest.approx(0.3, abs=5e-4)
+    assert tr.n_complete == 200
+
+
+def test_object_box_and_crop():
+    box = ObjectBox.from_side(0.3, 0.3, 0.004)
+    assert box.contains(np.array([[0, 0, 0.1], [0.16, 0, 0.1], [0, 0, 0.001], [0, 0, 0.31]])).tolist() == \
+        [True, False, False, False]
+    mesh = o3d.geometry.TriangleMesh.create_box(0.6, 0.6, 0.1).subdivide_midpoint(4)
+    mesh.translate([-0.3, -0.3, 0.05])                    # top face at z = 0.15 crosses the box
+    cropped = box.crop_mesh(mesh)
+    V = np.asarray(cropped.vertices)
+    assert len(V) > 0 and box.contains(V).all()
+    assert len(box.crop_mesh(o3d.geometry.TriangleMesh()).vertices) == 0
+    with pytest.raises(AppFusionError):
+        ObjectBox(0.1, 0.1, 0.3, 0.2)
+
+
+def test_marker_config_from_meta():
+    c = marker_config_from_meta({"extra": {"markers": {"radius_m": 0.025, "layout": "square", "side_m": 0.4}}})
+    assert (c.radius_m, c.side_m, c.layout) == (0.025, 0.4, "square")
+    assert marker_config_from_meta(None) == MarkerConfig()
+    assert marker_config_from_meta({"markers": {"radius_m": 0.03}}).radius_m == 0.03
+    with pytest.raises(AppFusionError, match="malformed"):
+        marker_config_from_meta({"extra": {"markers": {"radius_m": "big"}}})
+    with pytest.raises(AppFusionError, match="not supported"):
+        MarkerConfig(layout="hexagon")
+    with pytest.raises(AppFusionError, match="must exceed"):
+        MarkerConfig(radius_m=0.05, side_m=0.1)
