@@ -449,7 +449,6 @@ class ScanRunner:
 
     def _stage_environment(self, start: int, stop: int) -> None:
         """§4.3: track the camera on the markers, fit the ball, accumulate the environment map."""
-        from calibration.white_balance import WhiteBalance
         from .envmap import EnvMap
         from .lighting_pass import LightingPass
 
@@ -459,9 +458,9 @@ class ScanRunner:
             self._note("environment: reusing the checkpointed environment map")
             return
         cfg = self.config
-        geo = self._new_geometry(integrate=True)
+        geo = _Geometry(self.source.meta, self.config)
         light = LightingPass(n=cfg.envmap_n, radius=cfg.ball_radius_m, rho_mirror=cfg.mirror_reflectance)
-        wb = WhiteBalance(**self._marker_kwargs())
+        wb = None
         self._publish(force=True, stage="environment", guidance=GUIDANCE["environment"], tracking="ok")
         no_marker = 0
         for frame in self._frames(start, stop, "environment"):
@@ -478,11 +477,12 @@ class ScanRunner:
                     except AppFusionError as e:
                         self._note(f"environment: sphere fit not ready yet ({e})")
             if frame.rgb is not None:
-                rgb = wb.apply(frame, track.pose)
-                if rgb is None:
+                wb = wb or self._white_balancer(geo)
+                b = wb.balance(frame, track.pose)
+                if b.reference is None:
                     no_marker += 1
                     continue
-                light.add_frame(frame, pose=track.pose, rgb_linear=rgb)
+                light.add_frame(frame, pose=track.pose, rgb_linear=b.rgb)
             self._publish(tracking=track.state, markers_visible=track.markers_visible)
             if light.n_rgb_frames and light.n_rgb_frames % 10 == 0:
                 env = light.envmap()
@@ -511,20 +511,19 @@ class ScanRunner:
             self._note("geometry: reusing the checkpointed geometry")
             self._publish(force=True, positions=self.points[0], normals=self.points[1])
             return
-        self.geometry = self._new_geometry(integrate=True)
+        self.geometry = _Geometry(self.source.meta, self.config)
         self._publish(force=True, stage="geometry", guidance=GUIDANCE["geometry"], tracking="ok")
         lost = 0
         for frame in self._frames(start, stop, "geometry"):
             track = self.geometry.track(frame)
-            if track.pose is None:
-                lost += 1
-                self._publish(tracking="lost", markers_visible=track.markers_visible)
-                continue
-            self.poses[frame.index] = track.pose
+            lost += track.state == "lost"
+            if track.pose is not None:
+                self.poses[frame.index] = track.pose
             self._publish(tracking=track.state, markers_visible=track.markers_visible)
         if lost:
             self._note(f"geometry: tracking lost in {lost} frames (not fused; the scan resumed when the view returned)")
-        V, F, P, N = self.geometry.finish(cfg.n_points)
+        V, F, P, N, poses = self.geometry.finish(cfg.n_points)
+        self.poses.update(poses)  # every fused frame's final pose in the marker frame
         self.points, self.mesh = (P, N), (V, F)
         idx = np.array(sorted(self.poses), np.int64)
         self._save_npz("geometry", positions=P, normals=N, mesh_vertices=V, mesh_faces=F, pose_index=idx,
@@ -606,9 +605,8 @@ class ScanRunner:
         f = cluster.fit
         return (f.diffuse + f.rho_s * ward_retro(f.alpha, ch)).astype(np.float32)
 
-    def _stage_rgb(self, start: int, stop: int) -> None:
+    def _stage_rgb(self, start: int, stop: int, pass_name: str = "rgb") -> None:
         """§4.2 + §5.3: white-balanced RGB frames into per-point rho_d and per-cluster rho_s."""
-        from calibration.white_balance import WhiteBalance
         from .rgb_pass import RGBPass
 
         if self._stage_done("rgb"):
@@ -619,27 +617,27 @@ class ScanRunner:
         labels = self._current_labels()
         alpha = self._ir_result["alpha"] if getattr(self, "_ir_result", None) is not None else np.array([0.3])
         self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, **self._rgb_kwargs())
-        wb = WhiteBalance(**self._marker_kwargs())
-        if self.geometry is None:
-            self.geometry = self._new_geometry(integrate=False, mesh=self.mesh)
+        wb = self._white_balancer(self.geometry)
+        # the RGB pass tracks its own frames (fusion re-run on them; the marker frame ties the passes)
+        rgb_geo = _Geometry(self.source.meta, self.config) if pass_name != self._obj_pass else None
         self._publish(force=True, stage="rgb", guidance=GUIDANCE["rgb"], tracking="ok")
         used = no_marker = lost = 0
         for frame in self._frames(start, stop, "rgb"):
             if frame.rgb is None or frame.depth is None:
                 continue
             pose = self.poses.get(frame.index)
-            if pose is None:
-                track = self.geometry.track(frame, integrate=False)
+            if pose is None and rgb_geo is not None:
+                track = rgb_geo.track(frame)
                 pose = track.pose
                 self._publish(tracking=track.state, markers_visible=track.markers_visible)
             if pose is None:
                 lost += 1
                 continue
-            rgb = wb.apply(frame, pose)
-            if rgb is None:
+            b = wb.balance(frame, pose)
+            if b.reference is None:
                 no_marker += 1
                 continue
-            self.rgb.add_frame(rgb, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
+            self.rgb.add_frame(b.rgb, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
                                frame.depth_to_rgb)
             used += 1
             if used % 10 == 0:
@@ -688,9 +686,24 @@ class ScanRunner:
                 self.ir.set_labels([i], lab)
         self._publish(force=True, labels=self._current_labels())
 
-    def _marker_kwargs(self) -> dict[str, Any]:
-        meta = self.source.meta if isinstance(self.source.meta, dict) else {}
-        return {"markers": ((meta.get("extra") or {}).get("markers") or {})}
+    def _white_balancer(self, geo: "_Geometry | None"):
+        """§4.2 white balance on the circles: centres from the printed layout, else as fused so far."""
+        from calibration.white_balance import WhiteBalancer
+        from .markers import marker_config_from_meta
+
+        mc = marker_config_from_meta(self.source.meta if isinstance(self.source.meta, dict) else {})
+        if mc.side_m:
+            h = mc.side_m / 2
+            centers = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+        elif geo is not None and geo.gp.tracker.initialised:
+            from .frame import invert_pose, transform_points
+
+            t = geo.gp.tracker
+            centers = transform_points(invert_pose(t.marker_to_world()), t.centers)
+        else:
+            raise PassMissingError("white balance needs the marker layout (session meta extra.markers.side_m) "
+                                   "or a frame showing all four circles first")
+        return WhiteBalancer(centers=centers, radius=mc.radius_m)
 
     def _rgb_kwargs(self) -> dict[str, Any]:
         return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins}
@@ -760,6 +773,7 @@ class ScanRunner:
             self._stage_environment(*ranges["environment"])
         elif self.env is not None:
             self._note("environment: reusing the given environment map; the lighting pass is skipped")
+        self._obj_pass = obj
         self._stage_geometry(*ranges[obj], obj)
         if self.stopped:
             return self._finish_partial()
@@ -777,7 +791,7 @@ class ScanRunner:
                 self._note("rgb: no environment pass and no --envmap: rho_d and rho_s need the lighting; "
                            "the result keeps geometry, clusters and roughness only")
             else:
-                self._stage_rgb(*ranges[rgbp])
+                self._stage_rgb(*ranges[rgbp], rgbp)
         else:
             self._note("rgb: the recording has no RGB pass: rho_d and rho_s cannot be estimated")
         return self._finish_partial()
@@ -902,3 +916,49 @@ def run_scan(session, out_dir, config: ScanConfig | None = None, envmap=None, ir
                                                    if isinstance(v, float)))
     (out_dir / "summary.txt").write_text("\n".join(lines) + "\n")
     return "\n".join(lines)
+
+
+@dataclass
+class _Track:
+    """Tracking outcome of one frame, in the marker frame."""
+
+    pose: np.ndarray | None
+    state: str
+    markers_visible: int
+
+
+class _Geometry:
+    """The pipeline's view of :class:`appfusion.geometry_pass.GeometryPass` (§4.1).
+
+    ``track`` returns marker-frame poses once the four circles have defined the marker frame (frames
+    before that have no usable pose for the appearance passes and are skipped by them).
+    """
+
+    def __init__(self, meta: dict, config: ScanConfig):
+        from .geometry_pass import GeometryConfig, GeometryPass
+
+        gcfg = GeometryConfig(n_points=config.n_points, box_height=config.box_height_m)
+        if config.voxel_m:
+            from .fusion import FusionConfig
+
+            gcfg.fusion = FusionConfig(voxel_size=config.voxel_m)
+            gcfg.fixed_voxel = True
+        self.gp = GeometryPass(gcfg, meta=meta)
+
+    @property
+    def box(self):
+        return self.gp.box
+
+    def track(self, frame: Frame) -> _Track:
+        st = self.gp.add_frame(frame)
+        pose = st.pose_marker if st.ok else None
+        state = st.state if st.state != "first" else "ok"
+        return _Track(pose, state, int(st.markers_found))
+
+    def finish(self, n_points: int):
+        """Mesh (V, F), points and normals in the marker frame, and marker-frame poses per frame index."""
+        res = self.gp.result(n_points=n_points)
+        V = np.asarray(res.mesh.vertices, np.float32)
+        F = np.asarray(res.mesh.triangles, np.int32)
+        poses = {int(i): p for i, p in zip(res.frame_indices, res.poses) if np.all(np.isfinite(p))}
+        return V, F, res.points.astype(np.float32), res.normals.astype(np.float32), poses
