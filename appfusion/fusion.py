@@ -500,7 +500,7 @@ class TSDFFusion:
         self._n_integrated += 1
 
     def raycast(self, pose: np.ndarray, K: Intrinsics | None = None, normals: bool = False,
-                refine: bool | None = None):
+                refine: bool | None = None, all_blocks: bool = False):
         """Ray cast the model's zero level set from ``pose`` (camera-to-world); tracking size by default.
 
         Open3D's CPU ray caster marches with nearest-lower voxel look-ups (no interpolation), which
@@ -514,6 +514,9 @@ class TSDFFusion:
             z-depth in metres, NaN where no surface.
         normals : (H, W, 3) float32, only with ``normals=True``
             Unit normals in the camera frame, facing the camera, NaN where none.
+
+        Only the voxel blocks of the last integrated frame are marched unless ``all_blocks``
+        (for views far from the last one, e.g. when relocalising).
         """
         cfg = self.config
         K = K or self.K_trk
@@ -523,7 +526,8 @@ class TSDFFusion:
             return (d, np.full(K.shape + (3,), np.nan, np.float32)) if normals else d
         thr = float(min(self._n_integrated - 0.5, cfg.weight_threshold))
         attrs = ["depth", "index", "mask"] if refine else ["depth"]
-        r = self.vbg.ray_cast(self._frustum_blocks, o3d.core.Tensor(K.K), o3d.core.Tensor(invert_pose(pose)),
+        blocks = self.vbg.hashmap().key_tensor() if all_blocks else self._frustum_blocks
+        r = self.vbg.ray_cast(blocks, o3d.core.Tensor(K.K), o3d.core.Tensor(invert_pose(pose)),
                               K.width, K.height, attrs, 1.0, cfg.depth_min, cfg.depth_max, thr, cfg.trunc_voxels)
         d = r["depth"].numpy()[..., 0].astype(np.float32)
         d[~(d > 0)] = np.nan
@@ -673,15 +677,15 @@ class TSDFFusion:
         return T, float(overlap), float(frac), rmse
 
     def track(self, depth_trk: np.ndarray, init_pose: np.ndarray, ref_pose: np.ndarray,
-              depth_diff: float, anchors: tuple[np.ndarray, np.ndarray] | None = None
-              ) -> tuple[np.ndarray, float, float, float, dict]:
+              depth_diff: float, anchors: tuple[np.ndarray, np.ndarray] | None = None,
+              all_blocks: bool = False) -> tuple[np.ndarray, float, float, float, dict]:
         """Align a tracking-size depth image to the model ray cast at ``ref_pose`` (frame-to-model).
 
         ``anchors`` are (camera-frame points, world points) correspondences. Returns the
         camera-to-world pose, overlap, inlier fraction, RMSE and timings (ms).
         """
         t0 = time.perf_counter()
-        model, normals = self.raycast(ref_pose, normals=True)
+        model, normals = self.raycast(ref_pose, normals=True, all_blocks=all_blocks)
         t1 = time.perf_counter()
         init = invert_pose(ref_pose) @ init_pose          # source (current camera) -> target (ref camera)
         anc = None
@@ -745,8 +749,11 @@ class TSDFFusion:
         relocalising = self.lost
         ref = self._last_good
         pred = ref if relocalising else ref @ self._velocity
+        far_ref = False
         if anchors is not None and len(anchors[0]) >= 3 and relocalising:
+            # relocalise from the anchors' rigid fit, against the model seen from there
             pred = kabsch(anchors[0], anchors[1])
+            ref, far_ref = orthonormalize(pred), True
         pred = orthonormalize(pred)
         d_roi_pred = self._mask_roi(d_int, self.K_int, pred)
         d_trk = downsample_depth(d_roi_pred, self.f_trk)
@@ -755,7 +762,8 @@ class TSDFFusion:
             pose, overlap, frac, rmse, tms = pred, 0.0, 0.0, np.inf, {}
         else:
             pose, overlap, frac, rmse, tms = self.track(
-                d_trk, pred, ref, cfg.relocalise_depth_diff if relocalising else cfg.depth_diff, anchors)
+                d_trk, pred, ref, cfg.relocalise_depth_diff if relocalising else cfg.depth_diff, anchors,
+                all_blocks=far_ref)
         ms.update(tms)
         jump = invert_pose(pred) @ pose
         jump_m = float(np.linalg.norm(jump[:3, 3]))

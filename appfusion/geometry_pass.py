@@ -255,16 +255,22 @@ class GeometryPass:
         return det.centers[keep], C[j[keep]]
 
     def _match_complete(self, det: MarkerDetection) -> np.ndarray:
-        """Circle numbers of a complete detection: the cyclic shift of 1..4 that best fits the
-        fused square (the per-frame numbering may differ by a quarter turn)."""
+        """Circle numbers of a complete detection while tracking is lost.
+
+        The four circles form a square, so all four cyclic shifts of the numbering fit the fused
+        centres equally well; the shift whose camera pose (rigid fit) is closest in rotation to
+        the last good pose wins (the camera has not turned 45 degrees about the table while lost).
+        """
+        from .fusion import rotation_angle_deg
         C = self.tracker.centers
-        best, best_err = np.arange(4), np.inf
+        last = self.fusion.predicted_pose()
+        best, best_ang = np.arange(4), np.inf
         for s in range(4):
             perm = np.roll(np.arange(4), s)
             T = kabsch(det.centers, C[perm])
-            err = np.linalg.norm(transform_points(T, det.centers) - C[perm], axis=1).max()
-            if err < best_err:
-                best, best_err = perm, err
+            ang = rotation_angle_deg(last[:3, :3].T @ T[:3, :3])
+            if ang < best_ang:
+                best, best_ang = perm, ang
         return best
 
     # -- per frame ----------------------------------------------------------------------------------

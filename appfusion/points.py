@@ -32,11 +32,6 @@ from scipy.spatial import cKDTree
 from .errors import AppFusionError, EstimationError
 from .frame import Intrinsics
 
-try:                                     # only sample_points needs Open3D meshes
-    import open3d as o3d
-except ImportError:  # pragma: no cover
-    o3d = None
-
 __all__ = ["PointGrid", "register_pixels", "mean_spacing", "sample_points", "bilateral_filter_normals",
            "bilateral_denoise_points"]
 

@@ -295,3 +295,18 @@ def test_geometry_pass_without_markers(seq):
     empty = GeometryPass()
     with pytest.raises(EstimationError, match="no frame could be fused"):
         empty.result()
+
+
+def test_geometry_pass_lost_frames_resume():
+    """The GUI's view of a loss: frames hidden by a wall are ``lost`` with the last good pose, and
+    the pass resumes (relocalised on the markers) when the view returns."""
+    s = make_sequence(18, 320, 240, seed=4, occluder_frames=(8, 9, 10))
+    gp = GeometryPass(GeometryConfig(n_points=5000), meta={"extra": s.meta_extra})
+    states = [gp.add_frame(f) for f in s.frames]
+    assert [st.state for st in states[8:11]] == ["lost"] * 3
+    assert all(st.ok for st in states[11:]) and all(st.ok for st in states[:8])
+    assert all(st.reason for st in states[8:11])
+    res = gp.result()
+    assert res.lost_frames == [8, 9, 10]
+    ok = [i for i, st in enumerate(states) if st.ok]
+    assert _ate(res.poses[ok], s.poses[ok]) < 0.003
