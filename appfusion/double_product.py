@@ -1,0 +1,678 @@
+"""Haar-wavelet double-product tables of the RGB pass (paper §5.3, Eq. 4-5; Ng, Ramamoorthi & Hanrahan 2003).
+
+The RGB pass needs, per calibrated pixel ``L`` of a point with normal ``n`` seen from ``w_o``,
+
+    L = rho_d D(n) + rho_s S(n, alpha, w_o)                                    (Eq. 5)
+    D(n) = (1/pi) int L_i(w) (n.w)+ dw                                        (diffuse term)
+    S(n, alpha, w_o) = int L_i(w) f(alpha; w, w_o) (n.w)+ dw                   (double-product term)
+
+with ``f`` the isotropic Ward lobe (``appfusion.brdf``) and ``L_i`` the environment map, a
+(2, N, N, 3) radiance array in the world (marker) frame (``appfusion.octahedral``). This module
+precomputes both so that a sample costs a few table look-ups.
+
+D(n)
+----
+Exact quadrature over the environment texels (``octahedral.sphere_solid_angles``) on a
+vertex-centred octahedral grid of normals (:class:`NodeGrid`, default 2 x 65 x 65 nodes, nodes on the
+equator shared by both faces), read back bilinearly. D is a cosine convolution, smooth at this
+spacing. Visibility is ignored (paper assumption); the support plane is part of the environment.
+
+S: the double product, in the mirror frame
+-------------------------------------------
+The paper writes S as the integral of the local lighting times a BRDF slice and evaluates it as a
+dot product of Haar coefficients. Both functions are expressed here on one square of directions
+around the **mirror direction** ``r = 2 (n.w_o) n - w_o`` instead of the normal:
+
+* lighting ``L~_r(w') = L_i(F_r^T w') dw'`` -- the environment pre-rotated into the frame ``F_r``
+  of a tabulated mirror direction ``r`` (a :class:`NodeGrid` over the whole sphere), with the texel
+  solid angle folded in;
+* kernel (BRDF slice) ``K_{alpha,theta,beta}(w') = exp(-tan^2 theta_h / alpha^2) sqrt((n'.w')+) / (4 pi alpha^2)``
+  where ``n' = (sin theta cos beta, sin theta sin beta, cos theta)`` is the normal in that frame and
+  ``w'_o`` its mirror of the pole, so ``f(alpha; w', w'_o) (n'.w')+ = K / sqrt(cos theta)``
+  (``theta = theta_o``; the factor ``1/sqrt(cos theta_o)`` is applied after interpolation).
+
+Then ``S sqrt(cos theta_o) = <L~_r, K> = sum_j c_j(L~_r) c_j(K)`` over orthonormal 2-D Haar
+coefficients (``pywt.wavedec2(..., "haar", mode="periodization")``; Parseval). Why the mirror frame:
+in the normal frame (the paper's) the lobe *moves* across the square as ``w'_o`` changes, so
+interpolating between tabulated ``w'_o`` blends two displaced lobes; with exact node values that alone
+left 4.8 % RMS error at 2 x 33^2 normals x 33^2 views and 1.4 % at 65^2 x 65^2 (a 214 MB table). In
+the mirror frame the lobe stays at the pole and only changes shape with (theta, beta), which
+interpolates to 0.3 % RMS with a 10 x 12 polar grid, while the fast variation (the blurred
+environment) is resolved by the r grid, whose spacing can follow the lobe width: ``m_r ~ 6 / alpha``.
+
+Isotropy is what makes the kernel depend on the normal only through (theta, beta) in that frame.
+The square is an octahedral map of a polar cap of half-angle ``cap(alpha) = clip(7 alpha + 0.12,
+0.45, 2.2)`` rad around ``r`` (the octahedral polar angle is scaled by ``cap / (pi/2)``; the Ward lobe
+is below 1e-4 of its peak outside it), 32 x 32 texels, so a sharp lobe gets texels of ~0.02 rad and a
+broad one the whole hemisphere and more. Kernel texels are averaged over 4 x 4 sub-samples.
+
+Tables, approximations, sizes
+-----------------------------
+Per alpha in use (a cluster's alpha is known before the RGB pass starts, so tables are built only for
+those alphas -- "skip what the scene doesn't need"; other alphas interpolate linearly in log alpha
+between the two nearest built ones):
+
+* **BRDF tables**: Haar coefficients of the ``n_theta x n_beta`` kernel slices, the largest
+  ``brdf_keep`` (default 512 of 1024) per slice, int16 with a per-slice scale;
+* **lighting**: for every node of the r grid, the Haar coefficients of ``L~_r``, the largest
+  ``light_keep`` (default 128 of 1024) by summed RGB magnitude (non-linear approximation), int16 with
+  a per-node, per-channel scale. They are streamed in chunks of nodes and consumed at once: only the
+  products are kept (the paper keeps the pre-rotated lighting, 145 MB, and 9.1 GB of BRDF slices);
+* **S table**: ``S sqrt(cos theta_o)`` at every (r node, theta node, beta node), float16, RGB:
+  ``2 m_r^2 x n_theta x n_beta x 3 x 2`` bytes (alpha = 0.06: m_r = 97, 13.6 MB; alpha = 0.35: 0.4 MB).
+
+Sparse dot products are vectorised over all (node, slice) pairs of a chunk: the kept lighting
+coefficients index the dense BRDF coefficient matrix (gather) and are summed with their weights.
+
+A sample is then 16 look-ups (4 r nodes, bilinear on the octahedral node grid x 2 theta x 2 beta),
+exact where (n, w_o) sits on nodes. Samples with ``n.w_o`` below ``cos(theta_max)`` (default
+theta_max = 80 degrees) are grazing and reported invalid.
+
+Error budget (measured, see ``docs/rgb-pass.md`` and ``tests/test_double_product.py``): r-grid
+interpolation ~0.5 %, kernel grid ~0.3 %, coefficient truncation and quantisation ~0.2 % RMS of S.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import pywt
+
+from . import octahedral as octa
+from .diffuse_term import DiffuseTable, NodeGrid, envmap_check
+from .errors import AppFusionError
+
+__all__ = ["signed_frames", "CapSquare", "ward_kernel_slices", "haar2", "ihaar2",
+           "SparseCoeffs", "AlphaTable", "DoubleProductTables", "mirror_params", "default_r_res", "default_cap", "default_kernel_grid", "truncate"]
+
+
+def signed_frames(d: np.ndarray, s: np.ndarray | float) -> np.ndarray:
+    """Orthonormal frames (..., 3, 3) with rows (t, b, d) for unit ``d``, on a chosen branch.
+
+    The branchless construction of Duff et al. (2017) with the branch sign ``s`` given instead of
+    ``sign(d_z)``: ``s = +1`` is smooth on ``d_z > -1``, ``s = -1`` on ``d_z < 1``. Using +1 on face 0
+    and -1 on face 1 of a :class:`NodeGrid` (including its equator nodes) makes the frame a smooth
+    function of the direction within each face, which is what interpolation between nodes needs.
+    ``local = frame @ world``.
+    """
+    d = np.asarray(d, dtype=np.float64)
+    s = np.asarray(s, dtype=np.float64)
+    a = -1.0 / (s + d[..., 2])
+    b = d[..., 0] * d[..., 1] * a
+    t = np.stack([1 + s * d[..., 0] ** 2 * a, s * b * np.ones_like(a), -s * d[..., 0]], axis=-1)
+    bt = np.stack([b, s + d[..., 1] ** 2 * a, -d[..., 1]], axis=-1)
+    return np.stack([t, bt, d], axis=-2)
+
+
+# -- the local square over a polar cap ---------------------------------------------------------
+
+class CapSquare:
+    """An R x R texel-centred square of directions over the cap ``theta <= cap`` around +z.
+
+    Texel (i, j) has the octahedral hemisphere direction of ``appfusion.octahedral`` with its polar
+    angle scaled by ``s = cap / (pi/2)`` (azimuth kept); ``cap = pi/2`` is the plain octahedral
+    hemisphere square. Solid angles integrate the exact Jacobian
+    ``dw = s sin(theta) / sin(theta_oct) dw_oct`` over ``sub x sub`` midpoints per texel.
+
+    Parameters
+    ----------
+    res : int
+        Texels per side, a power of two (the Haar transform needs it).
+    cap : float
+        Cap half-angle, rad, in (0, pi).
+    sub : int
+        Sub-samples per side and texel (solid angles and kernel averages).
+    """
+
+    def __init__(self, res: int, cap: float, sub: int = 4):
+        if res < 2 or res & (res - 1):
+            raise AppFusionError(f"CapSquare: resolution must be a power of two >= 2, got {res}")
+        if not 0 < cap < math.pi:
+            raise AppFusionError(f"CapSquare: cap half-angle must be in (0, pi) rad, got {cap}")
+        self.res, self.cap, self.sub = int(res), float(cap), int(sub)
+        self.scale = self.cap / (math.pi / 2)
+        self.directions = self._dirs(octa.texel_centers(res))                    # (R, R, 3)
+        m = res * sub
+        c = (np.arange(m) + 0.5) * (2.0 / m) - 1.0
+        u, v = np.meshgrid(c, c)
+        uv = np.stack([u, v], axis=-1)
+        d_sub = self._dirs(uv)
+        x, y = 0.5 * (u + v), 0.5 * (u - v)
+        z = 1.0 - np.abs(x) - np.abs(y)
+        j_oct = 0.5 * (x * x + y * y + z * z) ** -1.5 * (2.0 / m) ** 2        # dw_oct per sub-sample
+        th_oct = np.arccos(np.clip(octa.hemi_decode(uv)[..., 2], -1, 1))
+        th = th_oct * self.scale
+        ratio = np.where(th_oct > 1e-9, np.sin(th) / np.maximum(np.sin(th_oct), 1e-300), self.scale)
+        w_sub = j_oct * self.scale * ratio
+        #: (R, R, sub*sub, 3) sub-sample directions and (R, R, sub*sub) their solid angles
+        self.sub_directions = d_sub.reshape(res, sub, res, sub, 3).transpose(0, 2, 1, 3, 4).reshape(res, res, sub * sub, 3)
+        self.sub_weights = w_sub.reshape(res, sub, res, sub).transpose(0, 2, 1, 3).reshape(res, res, sub * sub)
+        #: (R, R) texel solid angles, sr
+        self.solid_angles = self.sub_weights.sum(axis=-1)
+
+    def _dirs(self, uv: np.ndarray) -> np.ndarray:
+        d = octa.hemi_decode(uv)
+        th = np.arccos(np.clip(d[..., 2], -1, 1)) * self.scale
+        rho = np.hypot(d[..., 0], d[..., 1])
+        k = np.where(rho > 1e-12, np.sin(th) / np.maximum(rho, 1e-300), 0.0)
+        return np.stack([d[..., 0] * k, d[..., 1] * k, np.cos(th)], axis=-1)
+
+
+@lru_cache(maxsize=32)
+def _cap_square(res: int, cap: float, sub: int) -> CapSquare:
+    return CapSquare(res, cap, sub)
+
+
+def default_cap(alpha: float) -> float:
+    """Cap half-angle (rad) of the mirror-frame square for roughness ``alpha``: ``clip(5 a + 0.1, 0.35, 2.2)``.
+
+    The Ward lobe ``exp(-tan^2 theta_h / alpha^2)`` is below 1e-4 of its peak beyond
+    ``theta_h = 3 alpha``, i.e. ~6 alpha from the mirror direction in the plane of incidence (less
+    across it); with 32^2 texels that keeps texels at ~0.4 alpha near the pole.
+    """
+    return float(np.clip(5.0 * alpha + 0.1, 0.35, 2.2))
+
+
+def default_r_res(alpha: float, scale: float = 10.0) -> int:
+    """Nodes per side of the mirror-direction grid for ``alpha``: odd, ``~scale / alpha``, in [33, 97]."""
+    m = int(np.clip(round(scale / alpha), 33, 97))
+    return m if m % 2 else m + 1
+
+
+def default_kernel_grid(alpha: float) -> tuple[int, int]:
+    """(n_theta, n_beta) of the kernel grid for ``alpha``: broad lobes change shape faster with the normal."""
+    return int(np.clip(round(8 + 24 * alpha), 10, 16)), int(np.clip(round(8 + 40 * alpha), 12, 22))
+
+
+def truncate(c: np.ndarray, k: int) -> np.ndarray:
+    """Non-linear approximation of coefficient vectors: keep the ``k`` largest of each, zero the rest.
+
+    Parameters
+    ----------
+    c : (B, n, C) float32
+        B vectors of n coefficients with C channels; ranked by the summed |value| over channels
+        (one index set shared by the channels, as a stored table would share it).
+    k : int
+        Coefficients kept per vector (all when ``k >= n``).
+
+    Returns
+    -------
+    (B, n, C) float32
+        ``c`` with the dropped coefficients set to 0 (in place when possible).
+    """
+    B, n, C = c.shape
+    if k >= n:
+        return c
+    mag = np.abs(c).sum(axis=-1)
+    thr = np.partition(mag, n - k, axis=1)[:, n - k]
+    c *= (mag >= thr[:, None])[..., None]
+    return c
+
+
+# -- Ward kernel slices in the mirror frame -------------------------------------------------------
+
+def ward_kernel_slices(alpha: float, square: CapSquare, thetas: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """Texel averages of the mirror-frame Ward kernel, shape (n_theta, n_beta, R, R), float64.
+
+    ``K(w') = exp(-tan^2(theta_h) / alpha^2) sqrt((n'.w')+) / (4 pi alpha^2)`` with the normal
+    ``n' = (sin t cos b, sin t sin b, cos t)``, view ``w'_o = 2 cos(t) n' - z`` (so the mirror direction
+    is the pole) and ``h = w' + w'_o``; ``f(alpha; w', w'_o) (n'.w')+ = K / sqrt(cos t)`` (paper Eq. 1,
+    original isotropic Ward). Averaged over each texel's sub-samples, weighted by solid angle.
+    """
+    d = square.sub_directions                                 # (R, R, s, 3)
+    wts = square.sub_weights / square.solid_angles[..., None]
+    out = np.empty((len(thetas), len(betas), square.res, square.res))
+    a2 = alpha * alpha
+    for i, t in enumerate(thetas):
+        for j, b in enumerate(betas):
+            n = np.array([math.sin(t) * math.cos(b), math.sin(t) * math.sin(b), math.cos(t)])
+            wo = 2.0 * math.cos(t) * n - np.array([0.0, 0.0, 1.0])
+            ci = d @ n
+            co = math.cos(t)
+            h2 = 2.0 + 2.0 * (d @ wo)                         # |w' + w'_o|^2
+            nh = ci + co                                      # n'.(w' + w'_o)
+            ok = (ci > 0) & (nh > 0)
+            tan2 = np.where(ok, h2 / np.where(ok, nh * nh, 1.0) - 1.0, np.inf)
+            k = np.where(ok, np.exp(-np.maximum(tan2, 0.0) / a2) * np.sqrt(np.maximum(ci, 0.0)), 0.0)
+            out[i, j] = (k * wts).sum(axis=-1) / (4 * math.pi * a2)
+    return out
+
+
+# -- 2-D Haar transform and sparse coefficient vectors ------------------------------------------
+
+def haar2(x: np.ndarray) -> np.ndarray:
+    """Orthonormal 2-D Haar coefficients of squares ``x`` (B, R, R[, C]) over axes (1, 2), same shape.
+
+    Full decomposition (``pywt.wavedec2(x, "haar", mode="periodization")``), laid out by
+    ``pywt.coeffs_to_array``: the scaling coefficient first, then details coarse to fine.
+    """
+    c = pywt.wavedec2(x, "haar", mode="periodization", axes=(1, 2))
+    arr, _ = pywt.coeffs_to_array(c, axes=(1, 2))
+    return arr
+
+
+def ihaar2(c: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`haar2`."""
+    res = c.shape[1]
+    proto = pywt.wavedec2(np.zeros((1, res, res) + c.shape[3:]), "haar", mode="periodization", axes=(1, 2))
+    _, slices = pywt.coeffs_to_array(proto, axes=(1, 2))
+    coeffs = pywt.array_to_coeffs(c, slices, output_format="wavedec2")
+    return pywt.waverec2(coeffs, "haar", mode="periodization", axes=(1, 2))
+
+
+@dataclass
+class SparseCoeffs:
+    """The ``k`` largest coefficients of each of B vectors, int16-quantised (non-linear approximation).
+
+    Attributes
+    ----------
+    idx : (B, k) uint16 (uint32 for vectors longer than 65536)
+        Coefficient indices, ascending per row.
+    q : (B, k, C) int16
+        Quantised values: ``value = q * scale``.
+    scale : (B, C) float32
+        Per-vector, per-channel step (max |value| / 32767).
+    length : int
+        Length of the dense vectors.
+    """
+
+    idx: np.ndarray
+    q: np.ndarray
+    scale: np.ndarray
+    length: int
+
+    @classmethod
+    def from_dense(cls, c: np.ndarray, k: int) -> "SparseCoeffs":
+        """Keep the ``k`` largest of each row of ``c`` (B, n[, C]) by summed |value| over channels."""
+        c = np.asarray(c, dtype=np.float32)
+        if c.ndim == 2:
+            c = c[..., None]
+        B, n, C = c.shape
+        k = int(min(max(k, 1), n))
+        mag = np.abs(c).sum(axis=-1)
+        if k < n:
+            idx = np.argpartition(mag, n - k, axis=1)[:, n - k:]
+            idx.sort(axis=1)
+        else:
+            idx = np.broadcast_to(np.arange(n), (B, n)).copy()
+        vals = np.take_along_axis(c, idx[..., None], axis=1)
+        scale = np.abs(vals).max(axis=1) / 32767.0
+        scale = np.where(scale > 0, scale, 1.0).astype(np.float32)
+        q = np.rint(vals / scale[:, None, :]).astype(np.int16)
+        return cls(idx.astype(np.uint16 if n <= 65536 else np.uint32), q, scale, n)
+
+    def values(self) -> np.ndarray:
+        """Dequantised kept values, (B, k, C) float32."""
+        return self.q.astype(np.float32) * self.scale[:, None, :]
+
+    def dense(self) -> np.ndarray:
+        """Dense (B, n, C) float32 vectors with the dropped coefficients set to 0."""
+        B, k, C = self.q.shape
+        out = np.zeros((B, self.length, C), np.float32)
+        np.put_along_axis(out, self.idx.astype(np.int64)[..., None], self.values(), axis=1)
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.idx.nbytes + self.q.nbytes + self.scale.nbytes)
+
+
+# -- environment sampling ---------------------------------------------------------------------
+
+class _EnvSampler:
+    """Bicubic (or bilinear) sampling of a (2, N, N, 3) map with cv2.remap on a padded two-face atlas.
+
+    Each face is padded with ``PAD`` texels continued across the equator from the other face (the
+    octahedral fold: beyond an edge of one square lies the other square reflected across that edge),
+    so the interpolation stencil is exact on both sides of the horizon. Bicubic (Catmull-Rom, OpenCV
+    ``INTER_CUBIC``) rather than bilinear because bilinear interpolation flattens the peaks of a
+    sampled map: with a 2 x 128^2 map it lowers S of a sharp lobe (alpha = 0.06) by ~0.45 %.
+    """
+
+    PAD = 2
+
+    def __init__(self, env: np.ndarray, interpolation: int = cv2.INTER_CUBIC):
+        n = env.shape[1]
+        self.n = n
+        self.interpolation = interpolation
+        p = self.PAD
+        faces = []
+        for f in (0, 1):
+            a, o = env[f], env[1 - f]
+            big = np.zeros((n + 2 * p, n + 2 * p, 3), np.float32)
+            big[p:p + n, p:p + n] = a
+            for k in range(p):
+                big[p:p + n, p + n + k] = o[:, n - 1 - k]
+                big[p:p + n, p - 1 - k] = o[:, k]
+                big[p + n + k, p:p + n] = o[n - 1 - k, :]
+                big[p - 1 - k, p:p + n] = o[k, :]
+                for l in range(p):
+                    big[p - 1 - k, p - 1 - l] = o[k, l]
+                    big[p - 1 - k, p + n + l] = o[k, n - 1 - l]
+                    big[p + n + k, p - 1 - l] = o[n - 1 - k, l]
+                    big[p + n + k, p + n + l] = o[n - 1 - k, n - 1 - l]
+            faces.append(big)
+        self.atlas = np.ascontiguousarray(np.concatenate(faces, axis=1), dtype=np.float32)
+
+    def __call__(self, d: np.ndarray) -> np.ndarray:
+        """Radiance (..., 3) float32 in directions ``d`` (..., 3) (need not be unit; float32 math)."""
+        shp = d.shape[:-1]
+        d = np.asarray(d, dtype=np.float32).reshape(-1, 3)
+        n = self.n
+        ax = np.abs(d)
+        inv = 1.0 / np.maximum(ax.sum(axis=1), np.float32(1e-30))
+        px, py = d[:, 0] * inv, d[:, 1] * inv
+        half = np.float32(0.5 * n)
+        off = np.float32(self.PAD - 0.5)
+        mx = (px + py + 1.0) * half + off
+        mx += (d[:, 2] < 0) * np.float32(n + 2 * self.PAD)
+        my = (px - py + 1.0) * half + off
+        out = np.empty((len(d), 3), np.float32)
+        step = 32 * 32000                                        # remap maps: (rows < 32767, 32) blocks
+        for s in range(0, len(d), step):
+            k = min(step, len(d) - s)
+            cols = 32 if k % 32 == 0 else 1
+            out[s:s + k] = cv2.remap(self.atlas, mx[s:s + k].reshape(-1, cols), my[s:s + k].reshape(-1, cols),
+                                     self.interpolation, borderMode=cv2.BORDER_REPLICATE).reshape(k, 3)
+        return out.reshape(shp + (3,))
+
+
+# -- S tables -----------------------------------------------------------------------------------
+
+def mirror_params(normals: np.ndarray, w_o: np.ndarray):
+    """Mirror direction and the normal's polar coordinates in the mirror frame.
+
+    Parameters
+    ----------
+    normals, w_o : (..., 3) ndarray
+        Unit normals and unit view directions (from the surface towards the camera).
+
+    Returns
+    -------
+    r : (..., 3) float64
+        ``2 (n.w_o) n - w_o``.
+    cos_o : (...) float64
+        ``n.w_o`` (= cos theta, the normal's angle from r).
+    beta : (...) float64
+        Azimuth of n in the frame :func:`signed_frames` (r, +1 if r_z >= 0 else -1), in [0, 2 pi).
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    wo = np.asarray(w_o, dtype=np.float64)
+    co = np.einsum("...i,...i->...", n, wo)
+    r = 2.0 * co[..., None] * n - wo
+    r /= np.linalg.norm(r, axis=-1, keepdims=True)
+    s = np.where(r[..., 2] >= 0, 1.0, -1.0)
+    F = signed_frames(r, s)
+    x = np.einsum("...i,...i->...", F[..., 0, :], n)
+    y = np.einsum("...i,...i->...", F[..., 1, :], n)
+    beta = np.mod(np.arctan2(y, x), 2 * np.pi)
+    return r, co, beta
+
+
+@dataclass
+class AlphaTable:
+    """The S table of one roughness: ``S sqrt(cos theta_o)`` on (r node, theta node, beta node), RGB.
+
+    Attributes
+    ----------
+    alpha : float
+        Ward roughness.
+    grid : NodeGrid
+        Grid of mirror directions.
+    cap : float
+        Half-angle of the mirror-frame square, rad.
+    thetas, betas : ndarray
+        Kernel nodes: theta in [0, theta_max] (n_theta, inclusive), beta in [0, 2 pi) (n_beta, periodic).
+    values : (2 m^2, n_theta, n_beta, 3) float16
+        The table, in units of ``scale`` (so that bright environments do not overflow float16).
+    brdf : SparseCoeffs
+        The BRDF tables: kept Haar coefficients of the n_theta * n_beta kernel slices.
+    stats : dict
+        Build timings and sizes.
+    """
+
+    alpha: float
+    grid: NodeGrid
+    cap: float
+    thetas: np.ndarray
+    betas: np.ndarray
+    values: np.ndarray
+    brdf: SparseCoeffs
+    scale: float = 1.0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.values.nbytes + self.brdf.nbytes)
+
+    def lookup(self, r: np.ndarray, cos_o: np.ndarray, beta: np.ndarray) -> np.ndarray:
+        """Interpolated ``S`` (P, 3) float32 from :func:`mirror_params` of P samples; 0 where grazing.
+
+        Bilinear over the 4 r nodes around ``r`` times bilinear over (theta, beta): one gather of 16
+        rows of the table per sample, then ``1 / sqrt(cos theta_o)``.
+        """
+        r = np.asarray(r).reshape(-1, 3)
+        cos_o = np.asarray(cos_o, dtype=np.float32).reshape(-1)
+        beta = np.asarray(beta, dtype=np.float32).reshape(-1)
+        idx, w, _ = self.grid.lookup(r)
+        nt, nb = len(self.thetas), len(self.betas)
+        ft = np.arccos(np.clip(cos_o, -1.0, 1.0)) * np.float32((nt - 1) / self.thetas[-1])
+        t0 = np.clip(ft.astype(np.int64), 0, nt - 2)
+        at = np.clip(ft - t0, 0.0, 1.0).astype(np.float32)
+        fb = beta * np.float32(nb / (2 * np.pi))
+        b0 = np.floor(fb).astype(np.int64)
+        ab = (fb - b0).astype(np.float32)
+        b0 %= nb
+        b1 = (b0 + 1) % nb
+        kofs = np.stack([t0 * nb + b0, t0 * nb + b1, (t0 + 1) * nb + b0, (t0 + 1) * nb + b1], axis=1)
+        kw = np.stack([(1 - at) * (1 - ab), (1 - at) * ab, at * (1 - ab), at * ab], axis=1)
+        k16 = (idx[:, :, None] * (nt * nb) + kofs[:, None, :]).reshape(-1, 16)
+        w16 = (w.astype(np.float32)[:, :, None] * kw[:, None, :]).reshape(-1, 16)
+        vals = self.values.reshape(-1, 3).take(k16, axis=0).astype(np.float32)   # (P, 16, 3)
+        acc = np.matmul(w16[:, None, :], vals)[:, 0]
+        ok = (cos_o >= np.float32(math.cos(self.thetas[-1]) - 1e-6)) & (cos_o > 0)
+        inv = np.where(ok, np.float32(self.scale) / np.sqrt(np.where(ok, cos_o, 1.0)), 0.0).astype(np.float32)
+        return acc * inv[:, None]
+
+
+class DoubleProductTables:
+    """D and S tables of one environment map for a set of Ward roughnesses (paper §5.3).
+
+    Parameters
+    ----------
+    env : (2, N, N, 3) ndarray
+        Environment radiance in the world (marker) frame, ``appfusion.octahedral`` layout.
+    alphas : sequence of float
+        Roughnesses to build S tables for (the clusters' alphas); others are interpolated in log alpha
+        between the nearest two.
+    res : int
+        Texels per side of the mirror-frame square (power of two; default 32).
+    n_theta, n_beta : int
+        Kernel grid: theta nodes over [0, theta_max] and beta nodes over [0, 2 pi).
+    theta_max_deg : float
+        Largest view angle to the normal tabulated, degrees (samples beyond are grazing: S = 0, invalid).
+    light_keep, brdf_keep : int
+        Haar coefficients kept per lighting vector / per BRDF slice (non-linear approximation).
+    r_res : int or callable, optional
+        Nodes per side of the mirror-direction grid, or ``alpha -> int``; default :func:`default_r_res`.
+    d_res : int
+        Nodes per side of the D table's normal grid.
+    chunk : int
+        Mirror nodes per vectorised block (memory ~ chunk x res^2 x 40 bytes).
+    threads : int
+        Blocks built concurrently (numpy, PyWavelets and OpenCV release the GIL in their loops).
+    """
+
+    def __init__(self, env: np.ndarray, alphas, *, res: int = 32, kernel_grid: tuple[int, int] | None = None,
+                 theta_max_deg: float = 80.0, light_keep: int | None = 256, brdf_keep: int | None = 512,
+                 r_res=None, d_res: int = 65, chunk: int = 512, threads: int = 2):
+        t0 = time.perf_counter()
+        self.env = envmap_check(env, "DoubleProductTables")
+        al = np.atleast_1d(np.asarray(alphas, dtype=np.float64)).ravel()
+        if al.size == 0 or not np.isfinite(al).all() or (al <= 0).any():
+            raise AppFusionError(f"DoubleProductTables: alphas must be positive finite roughnesses, got {list(al)}")
+        if not 5.0 <= theta_max_deg <= 89.0:
+            raise AppFusionError(f"DoubleProductTables: theta_max_deg must be in [5, 89], got {theta_max_deg}")
+        if kernel_grid is not None and (kernel_grid[0] < 2 or kernel_grid[1] < 3):
+            raise AppFusionError(f"DoubleProductTables: kernel grid needs >= 2 theta and >= 3 beta nodes, got {kernel_grid}")
+        if res < 4 or res & (res - 1):
+            raise AppFusionError(f"DoubleProductTables: res must be a power of two >= 4, got {res}")
+        self.res = int(res)
+        self._kgrid = None if kernel_grid is None else (int(kernel_grid[0]), int(kernel_grid[1]))
+        self.theta_max = math.radians(theta_max_deg)
+        self.light_keep, self.brdf_keep, self.chunk = light_keep, brdf_keep, int(chunk)
+        self.threads = max(1, int(threads))
+        self._r_res = r_res
+        self._sampler = _EnvSampler(self.env)
+        td = time.perf_counter()
+        self.diffuse = DiffuseTable(self.env, m=d_res)
+        self.stats = {"diffuse_s": time.perf_counter() - td}
+        self.tables: dict[float, AlphaTable] = {}
+        for a in np.unique(al):
+            self.add_alpha(float(a))
+        self.build_seconds = time.perf_counter() - t0
+
+    # -- building
+    def r_res_for(self, alpha: float) -> int:
+        if self._r_res is None:
+            return default_r_res(alpha)
+        return int(self._r_res(alpha)) if callable(self._r_res) else int(self._r_res)
+
+    def add_alpha(self, alpha: float) -> AlphaTable:
+        """Build (or return the existing) S table of ``alpha``."""
+        alpha = float(alpha)
+        if alpha in self.tables:
+            return self.tables[alpha]
+        if not (np.isfinite(alpha) and alpha > 0):
+            raise AppFusionError(f"DoubleProductTables: alpha must be a positive roughness, got {alpha}")
+        t0 = time.perf_counter()
+        cap = default_cap(alpha)
+        res = self.res if cap <= 1.0 else 2 * self.res
+        sq = _cap_square(res, round(cap, 6), 4)
+        nt, nb = default_kernel_grid(alpha) if self._kgrid is None else self._kgrid
+        thetas = np.linspace(0.0, self.theta_max, nt)
+        betas = np.arange(nb) * (2 * np.pi / nb)
+        kern = ward_kernel_slices(alpha, sq, thetas, betas).reshape(-1, res, res)
+        R2 = res * res
+        scale_keep = R2 / (self.res * self.res)
+        brdf = SparseCoeffs.from_dense(haar2(kern.astype(np.float32)).reshape(len(kern), -1),
+                                       int(self.brdf_keep * scale_keep) if self.brdf_keep else R2)
+        Bd = np.ascontiguousarray(brdf.dense()[..., 0].T)              # (R^2, n_slices) BRDF coefficients
+        tk = time.perf_counter()
+        grid = NodeGrid(self.r_res_for(alpha))
+        nodes = grid.directions.reshape(-1, 3)
+        signs = grid.signs.reshape(-1)
+        keep = int(self.light_keep * scale_keep) if self.light_keep else R2
+        dw = sq.solid_angles.astype(np.float32).reshape(-1)
+        dirs32 = sq.directions.reshape(-1, 3).astype(np.float32)
+        values = np.empty((len(nodes), nt * nb, 3), np.float32)
+        timing = np.zeros(4)
+
+        def block(s0: int) -> None:
+            s1 = min(s0 + self.chunk, len(nodes))
+            c = s1 - s0
+            ta = time.perf_counter()
+            F = signed_frames(nodes[s0:s1], signs[s0:s1]).astype(np.float32)         # (c, 3, 3)
+            L = self._sampler(np.matmul(dirs32[None], F))          # (c, R^2, 3): env at F^T w'
+            L *= dw[None, :, None]
+            tb = time.perf_counter()
+            C = haar2(L.reshape(c, res, res, 3)).reshape(c, R2, 3)
+            tc = time.perf_counter()
+            C = truncate(C, keep)
+            td = time.perf_counter()
+            # the sparse double products of all (node, slice) pairs of the block: the dropped lighting
+            # coefficients are zeros, so one BLAS product does them all at once
+            v = np.ascontiguousarray(C.transpose(0, 2, 1)).reshape(c * 3, R2) @ Bd    # (c * 3, n_slices)
+            values[s0:s1] = v.reshape(c, 3, -1).transpose(0, 2, 1)
+            te = time.perf_counter()
+            timing[:] += (tb - ta, tc - tb, td - tc, te - td)
+
+        starts = range(0, len(nodes), self.chunk)
+        if self.threads > 1 and len(starts) > 1:
+            with ThreadPoolExecutor(self.threads) as ex:
+                list(ex.map(block, starts))
+        else:
+            for s0 in starts:
+                block(s0)
+        peak = float(np.abs(values).max())
+        scale = peak / 16384.0 if peak > 0 else 1.0
+        values /= scale
+        tab = AlphaTable(alpha, grid, cap, thetas, betas, values.astype(np.float16).reshape(len(nodes), nt, nb, 3),
+                         brdf, scale=scale)
+        t_sample, t_haar, t_keep, t_dot = timing
+        tab.stats = {"seconds": time.perf_counter() - t0, "kernel_s": tk - t0, "sample_s": t_sample,
+                     "haar_s": t_haar, "keep_s": t_keep, "dot_s": t_dot, "r_nodes": len(nodes),
+                     "r_res": grid.m, "cap_rad": cap, "res": res, "light_keep": keep, "n_theta": nt,
+                     "n_beta": nb, "mb": tab.nbytes / 2**20,
+                     "light_mb_if_stored": len(nodes) * (keep * 8 + 12) / 2**20}
+        self.tables[alpha] = tab
+        return tab
+
+    # -- queries
+    @property
+    def alphas(self) -> list[float]:
+        return sorted(self.tables)
+
+    def D(self, normals: np.ndarray) -> np.ndarray:
+        """Diffuse term D(n) (..., 3) at unit normals (..., 3)."""
+        return self.diffuse(normals)
+
+    def _bracket(self, alpha: float):
+        al = self.alphas
+        if alpha in self.tables:
+            return [(self.tables[alpha], 1.0)]
+        if alpha < al[0] or alpha > al[-1]:
+            raise AppFusionError(f"DoubleProductTables: alpha {alpha:g} is outside the built range "
+                                 f"[{al[0]:g}, {al[-1]:g}]; add_alpha({alpha:g}) first")
+        i = int(np.searchsorted(al, alpha))
+        a0, a1 = al[i - 1], al[i]
+        t = (math.log(alpha) - math.log(a0)) / (math.log(a1) - math.log(a0))
+        return [(self.tables[a0], 1.0 - t), (self.tables[a1], t)]
+
+    def S(self, normals: np.ndarray, w_o: np.ndarray, alpha) -> np.ndarray:
+        """Double-product term S(n, alpha, w_o) (P, 3), vectorised over samples.
+
+        Parameters
+        ----------
+        normals, w_o : (P, 3) ndarray
+            Unit normals and unit directions towards the camera, world frame.
+        alpha : float or (P,) ndarray
+            Roughness per sample (each value built, or between two built ones).
+
+        Returns
+        -------
+        (P, 3) float64
+            S; 0 where ``n.w_o < cos(theta_max)`` (grazing or back-facing; see :meth:`valid`).
+        """
+        n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        wo = np.asarray(w_o, dtype=np.float64).reshape(-1, 3)
+        if n.shape != wo.shape:
+            raise AppFusionError(f"DoubleProductTables.S: normals {n.shape} and w_o {wo.shape} differ in shape")
+        a = np.broadcast_to(np.asarray(alpha, dtype=np.float64), (len(n),))
+        r, co, beta = mirror_params(n, wo)
+        out = np.zeros((len(n), 3))
+        for av in np.unique(a):
+            sel = np.flatnonzero(a == av)
+            for tab, wt in self._bracket(float(av)):
+                out[sel] += wt * tab.lookup(r[sel], co[sel], beta[sel])
+        return out
+
+    def valid(self, normals: np.ndarray, w_o: np.ndarray) -> np.ndarray:
+        """True where a sample is within the tabulated view angles (``n.w_o >= cos(theta_max)``)."""
+        co = np.einsum("...i,...i->...", np.asarray(normals, float), np.asarray(w_o, float))
+        return co >= math.cos(self.theta_max)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of all tables kept (D table, S tables, BRDF tables)."""
+        return int(self.diffuse.nbytes + sum(t.nbytes for t in self.tables.values()))
+
+    def report(self) -> dict:
+        return {"mb": self.nbytes / 2**20, "build_s": self.build_seconds, "diffuse_s": self.stats["diffuse_s"],
+                "alphas": {str(a): t.stats for a, t in self.tables.items()}}
