@@ -175,7 +175,7 @@ class GeometryResult:
     def grid(self, max_dist: float | None = None) -> PointGrid:
         """The spatial grid over :attr:`points` for pixel registration (built once)."""
         if self._grid is None or (max_dist is not None and abs(self._grid.max_dist - max_dist) > 1e-12):
-            self._grid = PointGrid(self.points, self.normals, max_dist=max_dist or 1.5 * self.spacing)
+            self._grid = PointGrid(self.points, self.normals, max_dist=max_dist)
         return self._grid
 
     @property
