@@ -451,6 +451,7 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
         "format_version": FORMAT_VERSION, "scene": scene, "seed": seed, "device": device, "frames_per_pass": frames,
         "size": [w, h], "detail": detail, "quality": quality.to_json(),
         "object": {"name": obj.name, "vertices": len(obj.vertices), "faces": len(obj.faces), **obj.info},
+        "object_height_m": height,
         "ball": ball.to_json(), "plane": plane.to_json(), "sheet": Sheet().to_json(),
         "environment": office.to_json(), "relight_environment": sunset.to_json(), "envmap_files": env_files,
         "cameras": {"depth": di.to_json(), "rgb": ri.to_json(), "depth_to_rgb": d2rgb.tolist(),
