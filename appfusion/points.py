@@ -23,7 +23,6 @@ point sets it saw, so calling it every frame with the same arrays builds the gri
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage

@@ -11,7 +11,7 @@ import open3d as o3d
 import pytest
 
 from appfusion.errors import AppFusionError, EstimationError
-from appfusion.frame import Frame, Intrinsics, invert_pose, make_pose
+from appfusion.frame import Intrinsics, invert_pose, make_pose
 from appfusion.fusion import (FusionConfig, TSDFFusion, downsample_depth, kabsch, orthonormalize,
                               rotation_angle_deg, voxel_size_for_box)
 from appfusion.geometry_pass import GeometryConfig, GeometryPass
@@ -310,3 +310,25 @@ def test_geometry_pass_lost_frames_resume():
     assert res.lost_frames == [8, 9, 10]
     ok = [i for i, st in enumerate(states) if st.ok]
     assert _ate(res.poses[ok], s.poses[ok]) < 0.003
+
+
+def test_geometry_pass_reads_a_recorded_session(tmp_path):
+    """Frames written with replay.session and read back (depth quantised to 1/5000 m, IR to
+    10 bits, RGB to 16-bit linear) go through the geometry pass like the in-memory ones."""
+    from replay.session import SessionReader, SessionWriter
+
+    s = make_sequence(10, 320, 240, seed=6)
+    K = s.intrinsics
+    with SessionWriter(tmp_path / "sess", device="synthetic", intrinsics={"depth": K, "ir": K, "rgb": K},
+                       depth_to_ir=np.eye(4), depth_to_rgb=s.depth_to_rgb, rgb_encoding="linear",
+                       extra=s.meta_extra) as w:
+        w.event(0.0, "pass", "geometry")
+        for f in s.frames:
+            w.write(f.replace(pose=None))
+    r = SessionReader(tmp_path / "sess")
+    gp = GeometryPass(GeometryConfig(n_points=5000), meta=r.meta)
+    assert gp.marker_config.side_m == pytest.approx(s.side)
+    states = [gp.add_frame(f) for f in r]
+    assert all(st.ok for st in states) and all(st.markers_complete for st in states)
+    res = gp.result()
+    assert _ate(res.poses, s.poses) < 0.003
