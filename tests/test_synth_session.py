@@ -39,7 +39,8 @@ def test_session_reads_back_with_passes_events_and_streams(kinect_session):
     passes = [v for _, k, v in r.events if k == "pass"]
     assert passes == ["ir-calibration", "environment", "geometry", "rgb"]
     assert [v for _, k, v in r.events if k == "emitter"] == ["off", "on"]
-    assert r.meta["extra"]["markers"] == {"radius_m": 0.025, "layout": "square", "side_m": 0.30}
+    assert r.meta["extra"]["markers"] == {"radius_m": 0.025, "key_radius_m": 0.035, "layout": "square",
+                                          "side_m": 0.30}
     assert r.intrinsics["depth"].width == SIZE[0] and r.intrinsics["rgb"].fx == pytest.approx(525 * SIZE[0] / 640)
     np.testing.assert_allclose(r.depth_to_rgb[:3, 3], [-0.025, 0, 0])
     assert r.meta["emitter_position_m"] == [0.075, 0.0, 0.0]
@@ -131,3 +132,38 @@ def test_cli_list_and_errors(tmp_path, capsys):
     assert "unknown synthetic scene 'teapot'" in capsys.readouterr().err
     assert main(["synth", "sphere", str(tmp_path / "y"), "--size", "640by480"]) == 2
     assert "--size" in capsys.readouterr().err
+
+
+def test_info_command_and_contact_sheet(kinect_session, tmp_path, capsys):
+    import importlib.util
+
+    if importlib.util.find_spec("appfusion.commands.info") is not None:
+        assert main(["info", str(kinect_session)]) == 0
+        out = capsys.readouterr().out
+        assert "environment" in out and "geometry" in out
+    from replay.synth.contact import contact_sheet
+
+    png = contact_sheet(kinect_session, tmp_path / "sheet.png", tile_width=80)
+    import cv2
+
+    img = cv2.imread(str(png))
+    assert img.shape == (120, 320, 3) and img.std() > 5
+
+
+def test_demo_session_is_generated_once(tmp_path, monkeypatch):
+    """demo_session renders into a temporary folder, renames it into place, and reuses it afterwards."""
+    import replay.synth.scanner as S
+
+    calls = []
+
+    def fake_render(scene, out, **kw):
+        calls.append((scene, kw["size"], kw["frames"]))
+        (out / "truth").mkdir(parents=True)
+        (out / "truth" / "scene.json").write_text("{}")
+        return out
+
+    monkeypatch.setattr(S, "render_session", fake_render)
+    p1 = S.demo_session(tmp_path)
+    p2 = S.demo_session(tmp_path)
+    assert p1 == p2 == tmp_path / "synth-demo-two-material" and (p1 / "truth" / "scene.json").exists()
+    assert calls == [("two-material", (640, 480), S.DEMO_FRAMES)]

@@ -105,8 +105,9 @@ def frame_timing(scene: str = "two-material", size=(320, 240), frames: int = 3, 
     dm, ir, cam = DepthModel(), IRModel(seed=seed), RGBModel(seed=seed)
     ir.pattern()
     rng = np.random.default_rng(seed)
-    t_d, t_r, px = [], [], []
+    t_d, t_r, px, cpu = [], [], [], []
     for k in range(frames + 1):
+        c0 = time.process_time()
         t0 = time.perf_counter()
         render_depth_ir(sc, poses[k], di, dm, ir, rng, rng)
         t1 = time.perf_counter()
@@ -116,7 +117,9 @@ def frame_timing(scene: str = "two-material", size=(320, 240), frames: int = 3, 
         if k:
             t_d.append(t1 - t0)
             t_r.append(t2 - t1)
+            cpu.append(time.process_time() - c0)
             px.append(int((kind == KIND_OBJECT).sum()))
     return {"scene": scene, "size": list(size), "depth_ir_s": float(np.mean(t_d)), "rgb_s": float(np.mean(t_r)),
-            "all_streams_s": float(np.mean(t_d) + np.mean(t_r)), "object_pixels": float(np.mean(px)),
+            "all_streams_s": float(np.mean(t_d) + np.mean(t_r)), "cpu_s": float(np.mean(cpu)),
+            "object_pixels": float(np.mean(px)),
             "precompute_s": t_pre}

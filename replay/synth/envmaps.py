@@ -220,6 +220,30 @@ def hemisphere_cells(n_up: int, n_down: int):
     return np.concatenate(out_d), np.concatenate(out_w)
 
 
+def sample_octa(table: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Bilinear look-up of a (2, n, n, C) pair of hemisphere octahedral squares (Praun & Hoppe 2003,
+    rotated 45 degrees so a hemisphere fills its square; index 0: z >= 0, 1: z < 0 mirrored) in
+    directions ``w`` (..., 3). Near the equator look-ups clamp to the square's border."""
+    n = table.shape[1]
+    shp = np.shape(w)[:-1]
+    w = np.asarray(w, dtype=np.float64).reshape(-1, 3)
+    s = np.abs(w).sum(axis=1)
+    s = np.where(s > 0, s, 1.0)
+    px, py = w[:, 0] / s, w[:, 1] / s
+    face = (w[:, 2] < 0).astype(np.int64)
+    fx = (px + py + 1.0) * (0.5 * n) - 0.5
+    fy = (px - py + 1.0) * (0.5 * n) - 0.5
+    x0 = np.clip(np.floor(fx), 0, n - 2)
+    y0 = np.clip(np.floor(fy), 0, n - 2)
+    ax = np.clip(fx - x0, 0.0, 1.0).astype(np.float32)[:, None]
+    ay = np.clip(fy - y0, 0.0, 1.0).astype(np.float32)[:, None]
+    base = face * (n * n) + y0.astype(np.int64) * n + x0.astype(np.int64)
+    flat = table.reshape(2 * n * n, -1)
+    top = flat[base] * (1 - ax) + flat[base + 1] * ax
+    bot = flat[base + n] * (1 - ax) + flat[base + n + 1] * ax
+    return (top * (1 - ay) + bot * ay).reshape(shp + (flat.shape[1],))
+
+
 def sample_latlong(img: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Bilinear look-up of a lat-long image (H, W, C) in directions ``w`` (..., 3) (azimuth wraps)."""
     h, wd = img.shape[:2]
@@ -278,12 +302,19 @@ class Environment:
         return np.asarray(self.background_fn(_normalize(w)), dtype=np.float64)
 
     def background(self, w: np.ndarray) -> np.ndarray:
-        """B(w) from a fine lat-long table (bilinear); B is smooth, so this differs from the exact
-        function by less than 1e-3 relative (measured in the tests)."""
+        """B(w) from a fine table (two octahedral squares of ``table_height``^2 texels, one per hemisphere,
+        bilinear); B is smooth, so this differs from the exact function by ~1e-3 relative at most
+        (measured in the tests). No trigonometry: much faster than a lat-long look-up."""
         if self._table is None:
-            h = self.table_height
-            self._table = self.background_exact(latlong_dirs(h, 2 * h)).astype(np.float32)
-        return sample_latlong(self._table, w)
+            n = self.table_height
+            c = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
+            U, Vv = np.meshgrid(c, c)
+            x, y = 0.5 * (U + Vv), 0.5 * (U - Vv)
+            z = np.maximum(1.0 - np.abs(x) - np.abs(y), 0.0)
+            up = _normalize(np.stack([x, y, z], -1))
+            down = up * np.array([1.0, 1.0, -1.0])
+            self._table = np.stack([self.background_exact(up), self.background_exact(down)]).astype(np.float32)
+        return sample_octa(self._table, w)
 
     def emitter_radiance(self, w: np.ndarray) -> np.ndarray:
         """Sum of the emitters' radiance in directions ``w`` (..., 3) (``w`` need not be unit)."""

@@ -91,6 +91,9 @@ class SupportPlane:
     """Black paper on the table (z = 0) with four white circles (paper §4, §7).
 
     Circles are numbered 1 (+x, +y), 2 (+x, -y), 3 (-x, -y), 4 (-x, +y), centred at (+-side/2, +-side/2).
+    Circle 1 is the printed *key* circle, larger (``key_radius_m``) so that the numbering, and with it
+    the marker frame, is the same whichever side a pass starts from (a square of equal circles has a
+    quarter-turn ambiguity).
     """
 
     half_size_m: float = 0.6
@@ -98,6 +101,7 @@ class SupportPlane:
     ir_albedo: float = 0.05
     side_m: float = 0.30
     marker_radius_m: float = 0.025
+    key_radius_m: float = 0.035
     marker_albedo: float = 0.85
     marker_ir_albedo: float = 0.80
 
@@ -115,33 +119,39 @@ class SupportPlane:
         ok = (d[:, 2] < 0) & (t >= 0) & np.all(np.abs(x) <= self.half_size_m, axis=1)
         return np.where(ok, t, np.inf)
 
+    @property
+    def marker_radii(self) -> np.ndarray:
+        """Radius of circles 1..4 (circle 1 is the key circle), metres."""
+        return np.array([self.key_radius_m, self.marker_radius_m, self.marker_radius_m, self.marker_radius_m])
+
     def marker_coverage(self, xy: np.ndarray, footprint_m=0.0) -> np.ndarray:
         """Fraction of a pixel footprint (radius ``footprint_m``) covered by white, (N,)."""
         out = np.zeros(len(xy))
         fw = np.broadcast_to(np.maximum(np.asarray(footprint_m, dtype=np.float64), 1e-5), (len(xy),))
-        # circles sit at (+-s, +-s): fold into the first quadrant
-        ax, ay = np.abs(xy[:, 0]) - 0.5 * self.side_m, np.abs(xy[:, 1]) - 0.5 * self.side_m
-        reach = self.marker_radius_m + fw
-        near = np.nonzero((np.abs(ax) < reach) & (np.abs(ay) < reach))[0]
-        if len(near):
-            d = np.sqrt(ax[near] ** 2 + ay[near] ** 2)
-            out[near] = np.clip((self.marker_radius_m - d) / (2 * fw[near]) + 0.5, 0.0, 1.0)
+        for c, R in zip(self.marker_centres, self.marker_radii):
+            ax, ay = xy[:, 0] - c[0], xy[:, 1] - c[1]
+            reach = R + fw
+            near = np.nonzero((np.abs(ax) < reach) & (np.abs(ay) < reach))[0]
+            if len(near):
+                d = np.sqrt(ax[near] ** 2 + ay[near] ** 2)
+                out[near] = np.maximum(out[near], np.clip((R - d) / (2 * fw[near]) + 0.5, 0.0, 1.0))
         return out
 
     def marker_points(self, n_r: int = 4, n_s: int = 12):
         """Quadrature points on the four circles: polar cells (n_r rings of equal width, n_s sectors).
 
         Returns points (4 n_r n_s, 3) on z = 0 and their exact areas (m^2)."""
-        R = self.marker_radius_m
-        r = np.linspace(0, R, n_r + 1)
-        rc = np.sqrt(0.5 * (r[:-1] ** 2 + r[1:] ** 2))
-        dA = np.pi * (r[1:] ** 2 - r[:-1] ** 2) / n_s
         ph = (np.arange(n_s) + 0.5) * 2 * np.pi / n_s
-        Rr, P = np.meshgrid(rc, ph, indexing="ij")
-        loc = np.stack([Rr * np.cos(P), Rr * np.sin(P)], -1).reshape(-1, 2)
-        pts = (self.marker_centres[:, None, :] + loc[None]).reshape(-1, 2)
-        area = np.tile(np.repeat(dA, n_s), len(self.marker_centres))
-        return np.concatenate([pts, np.zeros((len(pts), 1))], axis=1), area
+        pts, area = [], []
+        for c, R in zip(self.marker_centres, self.marker_radii):
+            r = np.linspace(0, R, n_r + 1)
+            rc = np.sqrt(0.5 * (r[:-1] ** 2 + r[1:] ** 2))
+            dA = np.pi * (r[1:] ** 2 - r[:-1] ** 2) / n_s
+            Rr, P = np.meshgrid(rc, ph, indexing="ij")
+            pts.append(c[None] + np.stack([Rr * np.cos(P), Rr * np.sin(P)], -1).reshape(-1, 2))
+            area.append(np.repeat(dA, n_s))
+        pts = np.concatenate(pts)
+        return np.concatenate([pts, np.zeros((len(pts), 1))], axis=1), np.concatenate(area)
 
     def albedo_at(self, xy, footprint_m=0.0) -> np.ndarray:
         c = self.marker_coverage(xy, footprint_m)
@@ -466,6 +476,8 @@ class Lighting:
         from scipy.sparse import csr_matrix
 
         kc = len(self.c_dw)
+        if kc == 0:
+            return np.zeros(vis_fine.shape[:-1] + (0,), dtype=np.float64)
         G = csr_matrix((self.e_dw, (np.arange(len(self.e_dw)), self.e_group)), shape=(len(self.e_dw), kc))
         shp = vis_fine.shape
         out = (G.T @ vis_fine.reshape(-1, shp[-1]).T.astype(np.float64)).T / self.c_dw
@@ -558,6 +570,7 @@ class Lighting:
         X, Y = np.meshgrid(c, c, indexing="ij")
         xy = np.stack([X.ravel(), Y.ravel()], axis=1)
         self._plane_L_tex = (pl.albedo / np.pi * self.plane_irradiance_at(xy)).reshape(n, n, 3)
+        self._plane_L_tex_flat = self._plane_L_tex.reshape(n * n, 3).astype(np.float32)
         q = self.scene.quality
         self.m_pts, self.m_dA = pl.marker_points(q.marker_rings, q.marker_sectors)
         self.m_dL = (pl.marker_albedo - pl.albedo) / np.pi * self.plane_irradiance_at(self.m_pts[:, :2])
@@ -576,14 +589,14 @@ class Lighting:
         """Radiance of the black paper (without the circles) from a 2 mm texture (bilinear)."""
         half = self.scene.plane.half_size_m
         n = self._tex_n
-        f = (np.clip(xy, -half, half) + half) / (2 * half) * (n - 1)
-        i0 = np.clip(np.floor(f).astype(np.int64), 0, n - 2)
-        a = (f - i0)[..., None]
-        T = self._plane_L_tex
-        x0, y0 = i0[:, 0], i0[:, 1]
-        ax, ay = a[:, 0], a[:, 1]
-        return ((T[x0, y0] * (1 - ax) + T[x0 + 1, y0] * ax) * (1 - ay)
-                + (T[x0, y0 + 1] * (1 - ax) + T[x0 + 1, y0 + 1] * ax) * ay)
+        f = (np.clip(xy, -half, half) + half) * ((n - 1) / (2 * half))
+        i0 = np.clip(np.floor(f), 0, n - 2)
+        a = (f - i0).astype(np.float32)
+        base = i0[:, 0].astype(np.int64) * n + i0[:, 1].astype(np.int64)
+        T = self._plane_L_tex_flat
+        ax, ay = a[:, 0:1], a[:, 1:2]
+        return ((T[base] * (1 - ax) + T[base + n] * ax) * (1 - ay)
+                + (T[base + 1] * (1 - ax) + T[base + n + 1] * ax) * ay)
 
     # -- incident radiance along rays (background part: no emitters) ----------------------------
     def background_in(self, o: np.ndarray, d: np.ndarray, exact: bool = False, occ: np.ndarray | None = None,
@@ -813,8 +826,8 @@ def shade_object(scene: Scene, hits: Hits, sel: np.ndarray, cam_centre: np.ndarr
         # --- the white circles (small area lights on the plane)
         if len(lt.m_dA):
             per = len(lt.m_dA) // 4
-            R = scene.plane.marker_radius_m
             for k in range(4):
+                R = scene.plane.marker_radii[k]
                 cols = np.arange(k * per, (k + 1) * per)
                 c = np.r_[scene.plane.marker_centres[k], 0.0]
                 v = c - p[sm]
@@ -841,7 +854,9 @@ def shade_object(scene: Scene, hits: Hits, sel: np.ndarray, cam_centre: np.ndarr
         # ``pilot`` samples per pixel, then pixels where this part is a large share of the radiance get
         # more (4x or 16x), so that its relative noise stays about uniform.
         o_sm = p[sm] + EPS_RAY * ng[sm]
-        est, cnt = _lobe_background(lt, mt, o_sm, n[sm], wo[sm], rng, pilot)
+        # a weak specular (matte) material needs only a small pilot: its share is ~rho_s of the pixel
+        pilot_m = pilot if rs.max() >= 0.1 else max(4, pilot // 4)
+        est, cnt = _lobe_background(lt, mt, o_sm, n[sm], wo[sm], rng, pilot_m)
         cv = None
         if q.control_variate:
             # the pilot's lobe-weighted mean radiance: a control variate independent of the later samples
@@ -850,7 +865,7 @@ def shade_object(scene: Scene, hits: Hits, sel: np.ndarray, cam_centre: np.ndarr
         if m_s > pilot:
             frac = est.mean(axis=1) * rs.mean() / (diffuse[sm].mean(axis=1) + spec_e[sm].mean(axis=1)
                                                   + est.mean(axis=1) * rs.mean() + 1e-9)
-            want = np.minimum(m_s, pilot * np.maximum(1.0, (frac / q.spec_share) ** 2))
+            want = np.minimum(m_s, pilot_m * np.maximum(1.0, (frac / q.spec_share) ** 2))
             for level in (4 * pilot, 16 * pilot):
                 if level > m_s:
                     break

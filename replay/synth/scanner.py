@@ -47,7 +47,7 @@ CALIB_DISTANCES_M = (0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1, 1.2)
 CALIB_FRAMES_EACH = 3
 PASS_GAP_S = 2.0
 FORMAT_VERSION = 1
-DEMO_FRAMES = 120
+DEMO_FRAMES = 100
 
 
 # -- rendering one frame ----------------------------------------------------------------------------
@@ -357,7 +357,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     extra = {
         "synthetic": True,
         "generator": "replay.synth",
-        "markers": {"radius_m": plane.marker_radius_m, "layout": "square", "side_m": plane.side_m},
+        "markers": {"radius_m": plane.marker_radius_m, "key_radius_m": plane.key_radius_m, "layout": "square",
+                    "side_m": plane.side_m},
         "mirror_ball": {"reflectance": ball.reflectance},
         "depth": {"baseline_m": depth_model.baseline_m, "disparity_subpixel": depth_model.subpixel,
                   "range_m": [depth_model.z_min_m, depth_model.z_max_m]},
@@ -426,7 +427,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     lt_env = scenes["env"].lighting
     box = {"min_m": [-plane.side_m / 2, -plane.side_m / 2, 0.0], "max_m": [plane.side_m / 2, plane.side_m / 2, 0.30]}
     markers = {
-        "radius_m": plane.marker_radius_m, "layout": "square", "side_m": plane.side_m,
+        "radius_m": plane.marker_radius_m, "key_radius_m": plane.key_radius_m, "layout": "square",
+        "side_m": plane.side_m,
         "centres_m": [[float(x), float(y), 0.0] for x, y in plane.marker_centres],
         "numbering": "1 (+x,+y), 2 (+x,-y), 3 (-x,-y), 4 (-x,+y)",
         "albedo": plane.marker_albedo, "ir_albedo": plane.marker_ir_albedo,
