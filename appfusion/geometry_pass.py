@@ -262,6 +262,8 @@ class GeometryPass:
         the last good pose wins (the camera has not turned 45 degrees about the table while lost).
         """
         from .fusion import rotation_angle_deg
+        if self.marker_config.key_radius_m:
+            return np.arange(4)  # the key circle makes a complete detection's numbering absolute
         C = self.tracker.centers
         last = self.fusion.predicted_pose()
         best, best_ang = np.arange(4), np.inf

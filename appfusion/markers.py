@@ -61,6 +61,12 @@ class MarkerConfig:
         square whose circles have ``radius_m`` is accepted).
     layout : str
         Only ``"square"`` is supported.
+    key_radius_m : float or None
+        Radius of the printed *key* circle (circle 1), larger than the others. A square of four equal
+        circles has a quarter-turn ambiguity: its numbering, and so the marker frame, depends on the
+        side a pass starts from, and an environment map would not line up with a later scan. With a
+        key circle the numbering is absolute. None: four equal circles (the numbering then follows
+        the first complete detection).
     radius_tol : float
         Relative tolerance of the measured radius.
     side_tol : float
@@ -70,6 +76,7 @@ class MarkerConfig:
     radius_m: float = 0.02
     side_m: float | None = None
     layout: str = "square"
+    key_radius_m: float | None = None
     radius_tol: float = 0.25
     side_tol: float = 0.08
 
@@ -80,6 +87,14 @@ class MarkerConfig:
             raise AppFusionError(f"markers: side_m {self.side_m} must exceed 4 x radius_m {self.radius_m}")
         if self.layout != "square":
             raise AppFusionError(f"markers: layout {self.layout!r} is not supported (only 'square')")
+        if self.key_radius_m is not None and not (self.key_radius_m > (1 + self.radius_tol) * self.radius_m):
+            raise AppFusionError(f"markers: key_radius_m {self.key_radius_m} must exceed radius_m {self.radius_m} "
+                                 f"by more than the radius tolerance ({self.radius_tol:.0%})")
+
+    def radius_ok(self, r: float) -> bool:
+        """True if a measured radius matches a printed circle (the key circle included)."""
+        radii = [self.radius_m] + ([self.key_radius_m] if self.key_radius_m else [])
+        return any(abs(r - R) <= self.radius_tol * R for R in radii)
 
 
 def marker_config_from_meta(meta: dict | None) -> MarkerConfig:
@@ -91,7 +106,8 @@ def marker_config_from_meta(meta: dict | None) -> MarkerConfig:
     try:
         return MarkerConfig(radius_m=float(m.get("radius_m", 0.02)),
                             side_m=None if m.get("side_m") is None else float(m["side_m"]),
-                            layout=str(m.get("layout", "square")))
+                            layout=str(m.get("layout", "square")),
+                            key_radius_m=None if m.get("key_radius_m") is None else float(m["key_radius_m"]))
     except (TypeError, ValueError) as e:
         raise AppFusionError(f"session meta 'markers' is malformed: {e}") from None
 
@@ -464,7 +480,7 @@ def detect_markers(frame: Frame, config: MarkerConfig | None = None, stream: str
             c, r, rms = circle_on_plane(e.contour, K, n, d)
         except EstimationError:
             continue
-        if abs(r - cfg.radius_m) > cfg.radius_tol * cfg.radius_m or rms > 0.3 * cfg.radius_m:
+        if not cfg.radius_ok(r) or rms > 0.3 * cfg.radius_m:
             continue
         cands.append((c, r, e.center))
     if not cands:
@@ -490,6 +506,14 @@ def detect_markers(frame: Frame, config: MarkerConfig | None = None, stream: str
     Cb = transform_points(Tinv, C[best])
     order = number_square(Cb, n_depth, np.array([1.0, 0.0, 0.0]))
     idx = np.array(best)[order]
+    if cfg.key_radius_m:
+        # the key circle is circle 1: rotate the numbering (keeps its handedness)
+        k = int(np.argmax(R[idx]))
+        others = np.delete(R[idx], k)
+        if R[idx][k] > 0.5 * (cfg.radius_m + cfg.key_radius_m) and np.all(others < 0.5 * (cfg.radius_m + cfg.key_radius_m)):
+            idx = np.roll(idx, -k)
+        else:  # the key circle is not recognisable: do not let an arbitrary numbering define the frame
+            return MarkerDetection(transform_points(Tinv, C[idx]), R[idx], UV[idx], n_depth, d_depth, False, stream)
     return MarkerDetection(transform_points(Tinv, C[idx]), R[idx], UV[idx], n_depth, d_depth, True, stream)
 
 

@@ -194,3 +194,43 @@ def test_marker_config_from_meta():
         MarkerConfig(layout="hexagon")
     with pytest.raises(AppFusionError, match="must exceed"):
         MarkerConfig(radius_m=0.05, side_m=0.1)
+
+
+def _plane_frame(pose: np.ndarray, K: Intrinsics, centres: np.ndarray, radii: np.ndarray):
+    """Depth + IR of the marker plane z = 0 seen from ``pose`` (camera-to-world), exact ray casting."""
+    from appfusion.frame import Frame
+
+    rays = K.rays().reshape(-1, 3).astype(np.float64)
+    d = rays @ pose[:3, :3].T
+    o = pose[:3, 3]
+    t = -o[2] / d[:, 2]
+    hit = o + t[:, None] * d
+    ir = np.full(len(d), 40.0)
+    for c, r in zip(centres, radii):
+        ir[np.hypot(hit[:, 0] - c[0], hit[:, 1] - c[1]) < r] = 800.0
+    depth = (t * rays[:, 2]).reshape(K.shape).astype(np.float32)
+    return Frame(0, 0.0, depth=depth, ir=ir.reshape(K.shape).astype(np.float32), depth_intrinsics=K, ir_intrinsics=K)
+
+
+def test_key_circle_makes_numbering_absolute():
+    # a square of equal circles is numbered by the view; with a larger key circle (1), every view from
+    # any side gives circle 1 at the key circle's position
+    K = Intrinsics(320, 240, 290.0, 290.0, 159.5, 119.5)
+    h = 0.15
+    centres = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]])
+    radii = np.array([0.035, 0.025, 0.025, 0.025])
+    cfg = MarkerConfig(radius_m=0.025, side_m=0.30, key_radius_m=0.035)
+    for az in (10.0, 100.0, 190.0, 280.0):
+        a = np.radians(az)
+        eye = np.array([0.55 * np.cos(a), 0.55 * np.sin(a), 0.55])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        pose = make_pose(np.stack([x, np.cross(z, x), z], 1), eye)
+        det = detect_markers(_plane_frame(pose, K, centres, radii), cfg)
+        assert det.complete, az
+        world = transform_points(pose, det.centers)
+        np.testing.assert_allclose(world, centres, atol=0.004)
+        assert det.radii[0] == pytest.approx(0.035, abs=0.003)
+    with pytest.raises(AppFusionError, match="key_radius_m"):
+        MarkerConfig(radius_m=0.025, key_radius_m=0.026)
