@@ -121,6 +121,24 @@ def histogram_percentile(hist: np.ndarray, lo: float, width: float, pct: float) 
     return np.where(total > 0, val, 0.0), total
 
 
+def _normal_order(normals: np.ndarray) -> np.ndarray:
+    """Permutation sorting unit normals (P, 3) along a Morton (Z-order) curve of their octahedral
+    coordinates (face, then 10 + 10 bits)."""
+    from . import octahedral as octa
+
+    face, uv = octa.sphere_encode(normals)
+    q = np.clip(((uv + 1.0) * 512).astype(np.int64), 0, 1023)
+
+    def spread(x):
+        x = (x | (x << 8)) & 0x00FF00FF
+        x = (x | (x << 4)) & 0x0F0F0F0F
+        x = (x | (x << 2)) & 0x33333333
+        return (x | (x << 1)) & 0x55555555
+
+    code = (face << 20) | (spread(q[:, 1]) << 1) | spread(q[:, 0])
+    return np.argsort(code, kind="stable")
+
+
 class RGBPass:
     """Streaming estimator of rho_d (per point) and rho_s (per cluster), paper §5.3.
 
@@ -194,8 +212,17 @@ class RGBPass:
             raise AppFusionError(f"RGBPass: need bins >= 4, 0 < ratio_range[0] < ratio_range[1], 0 < percentile < 100; "
                                  f"got {bins}, {ratio_range}, {percentile}")
         env = envmap_check(envmap, "RGBPass envmap")
+        # Points are kept internally in the order of a Morton code of their normals, so that the
+        # samples of a frame read neighbouring rows of the S tables (cache locality); public indices
+        # and results are in the caller's order (self._rank maps caller -> internal).
+        order = _normal_order(N)
+        self._order = order
+        self._rank = np.empty_like(order)
+        self._rank[order] = np.arange(len(order))
+        P, N, lab = P[order], N[order], lab[order]
         self.positions = np.ascontiguousarray(P, dtype=np.float32)
         self.normals = np.ascontiguousarray(N, dtype=np.float32)
+        self._ndotp = np.einsum("ij,ij->i", self.normals, self.positions)
         self.labels = lab.astype(np.int64)
         self.alphas = al
         self.n_clusters = len(al)
@@ -289,24 +316,24 @@ class RGBPass:
         return used
 
     def _project_points(self, depth, K: Intrinsics, T) -> tuple[np.ndarray, tuple]:
-        """Visible points by projection: point indices and their depth-camera coordinates (x, y, z)."""
+        """Visible points by projection: internal point indices and their depth-camera coordinates."""
+        cam = T[:3, 3].astype(np.float32)
+        idx = np.flatnonzero(self.normals @ cam > self._ndotp)               # facing the camera
         Ti = invert_pose(T)
         R = Ti[:3, :3].astype(np.float32)
         t = Ti[:3, 3].astype(np.float32)
-        X = self.positions @ R.T + t
+        X = self.positions[idx] @ R.T + t
         z = X[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.rint(np.float32(K.fx) * X[:, 0] / z + np.float32(K.cx))
-            v = np.rint(np.float32(K.fy) * X[:, 1] / z + np.float32(K.cy))
+            iz = np.float32(1.0) / z
+            u = np.rint(np.float32(K.fx) * X[:, 0] * iz + np.float32(K.cx))
+            v = np.rint(np.float32(K.fy) * X[:, 1] * iz + np.float32(K.cy))
         ok = (z > 1e-3) & (u >= 0) & (u <= K.width - 1) & (v >= 0) & (v <= K.height - 1)
-        cam = T[:3, 3].astype(np.float32)
-        front = np.einsum("ij,ij->i", self.normals, cam - self.positions) > 0
-        idx = np.flatnonzero(ok & front)
-        pix = v[idx].astype(np.int64) * K.width + u[idx].astype(np.int64)
-        zm = depth.reshape(-1)[pix]
-        vis = np.abs(zm - z[idx]) <= self.depth_tol                   # NaN depth -> not visible
-        idx = idx[vis]
-        return idx, (X[idx, 0], X[idx, 1], X[idx, 2])
+        sel = np.flatnonzero(ok)
+        pix = v[sel].astype(np.int64) * K.width + u[sel].astype(np.int64)
+        vis = np.abs(depth.reshape(-1)[pix] - z[sel]) <= self.depth_tol       # NaN depth -> not visible
+        sel = sel[vis]
+        return idx[sel], (X[sel, 0], X[sel, 1], z[sel])
 
     @staticmethod
     def _backproject(depth, K: Intrinsics, pix) -> tuple:
@@ -343,6 +370,9 @@ class RGBPass:
         if bad_in.any():                                        # NaN pixels in the image: treat as saturated
             sat |= bad_in
             col = np.where(bad_in[:, None], 0.0, col)
+        C = (T @ invert_pose(E))[:3, 3]                      # RGB camera centre, world
+        if self.registration == "points":                    # one pixel per point already
+            return self._add(pts, col, C, sat, unique=True)
         # one sample per point and frame: mean of its pixels; saturated if any pixel is
         n = len(self.positions)
         cnt = np.bincount(pts, minlength=n)
@@ -350,25 +380,32 @@ class RGBPass:
         k = cnt[p].astype(np.float32)
         L = np.stack([np.bincount(pts, weights=col[:, c], minlength=n)[p] for c in range(3)], axis=1) / k[:, None]
         satp = np.bincount(pts, weights=sat.astype(np.float64), minlength=n)[p] > 0
-        # view direction from the RGB camera centre
-        C = (T @ invert_pose(E))[:3, 3]
-        return self.add_samples(p, L, C, saturated=satp, unique=True)
+        return self._add(p, L, C, satp, unique=True)
 
     def add_samples(self, point_idx: np.ndarray, L: np.ndarray, camera_center: np.ndarray,
-                    saturated: np.ndarray | None = None, unique: bool = False) -> int:
-        """Add registered samples: calibrated linear RGB ``L`` (k, 3) of points ``point_idx`` (k,)
-        seen from ``camera_center`` (3,) or per-sample centres (k, 3), world frame.
+                    saturated: np.ndarray | None = None) -> int:
+        """Add registered samples directly (a front end that registers pixels itself).
 
-        Samples that are dark, saturated (``saturated`` flags or a channel >= the threshold), grazing,
-        or of unlit points are skipped. ``unique=True`` promises that no point repeats (faster).
+        Parameters
+        ----------
+        point_idx : (k,) int array
+            Points (indices into the arrays given to the constructor); may repeat.
+        L : (k, 3) array
+            Calibrated linear RGB of each sample.
+        camera_center : (3,) or (k, 3) array
+            RGB camera centre(s), world frame (``w_o`` points from the point to it).
+        saturated : (k,) bool array, optional
+            Samples known to be clipped (besides any channel >= the threshold).
 
         Returns
         -------
         int
-            Samples used.
+            Samples used (the others were dark, saturated, grazing, or of unlit points).
         """
-        p = np.asarray(point_idx, dtype=np.int64).reshape(-1)
-        L = np.asarray(L, dtype=np.float64).reshape(-1, 3)
+        p = np.asarray(point_idx).reshape(-1)
+        if not np.issubdtype(p.dtype, np.integer):
+            raise AppFusionError(f"RGBPass.add_samples: point indices must be integers, got {p.dtype}")
+        L = np.asarray(L, dtype=np.float32).reshape(-1, 3)
         if len(L) != len(p):
             raise AppFusionError(f"RGBPass.add_samples: {len(p)} point indices but {len(L)} RGB samples")
         if len(p) and (p.min() < 0 or p.max() >= len(self.positions)):
@@ -376,59 +413,72 @@ class RGBPass:
         Cc = np.asarray(camera_center, dtype=np.float64)
         if Cc.shape not in ((3,), (len(p), 3)) or not np.isfinite(Cc).all():
             raise AppFusionError(f"RGBPass.add_samples: camera_center must be a finite (3,) or ({len(p)}, 3) array")
+        sat = np.zeros(len(p), bool) if saturated is None else np.asarray(saturated, bool).reshape(-1)
+        if len(sat) != len(p):
+            raise AppFusionError(f"RGBPass.add_samples: {len(sat)} saturation flags for {len(p)} samples")
+        return self._add(self._rank[p.astype(np.int64)], L, Cc, sat, unique=False)
+
+    def _add(self, p: np.ndarray, L: np.ndarray, C: np.ndarray, sat: np.ndarray, unique: bool) -> int:
+        """Core update on internal point indices ``p`` (k,), RGB ``L`` (k, 3), camera centre(s) ``C``."""
         if len(p) == 0:
             return 0
+        L = np.asarray(L, dtype=np.float32)
         finite = np.isfinite(L).all(axis=1)
-        satp = (np.where(finite[:, None], L, np.inf) >= self.saturated).any(axis=1)
-        if saturated is not None:
-            satp |= np.asarray(saturated, bool).reshape(-1)
-        L = np.where(finite[:, None], L, 0.0)
-        wo = (Cc - self.positions[p]).astype(np.float64)
-        wo /= np.maximum(np.linalg.norm(wo, axis=1, keepdims=True), 1e-12)
-        nrm = self.normals[p].astype(np.float64)
+        if not finite.all():                                  # NaN/inf pixels: skipped like clipped ones
+            sat = sat | ~finite
+            L = np.where(finite[:, None], L, np.float32(0.0))
+        Lmax = L.max(axis=1)
+        sat = sat | (Lmax >= self.saturated)
+        wo = np.asarray(C, dtype=np.float32) - self.positions[p]
+        wo *= (np.float32(1.0) / np.sqrt(np.einsum("ij,ij->i", wo, wo)))[:, None]
+        nrm = self.normals[p]
         cos_o = np.einsum("ij,ij->i", nrm, wo)
-        dark = L.max(axis=1) < self.dark
+        dark = Lmax < self.dark
         graz = cos_o < self.min_cos
         unlit = ~self.lit[p]
-        keep = ~(dark | satp | graz | unlit)
+        keep = ~(dark | sat | graz | unlit)
         st = self.stats
-        st["skipped_dark"] += int((dark & ~satp).sum())
-        st["skipped_saturated"] += int(satp.sum())
-        st["skipped_grazing"] += int((graz & ~dark & ~satp).sum())
-        st["skipped_unlit"] += int((unlit & ~graz & ~dark & ~satp).sum())
-        p, L, wo, nrm = p[keep], L[keep], wo[keep], nrm[keep]
-        if len(p) == 0:
+        st["skipped_saturated"] += int(np.count_nonzero(sat))
+        st["skipped_dark"] += int(np.count_nonzero(dark & ~sat))
+        st["skipped_grazing"] += int(np.count_nonzero(graz & ~dark & ~sat))
+        st["skipped_unlit"] += int(np.count_nonzero(unlit & ~graz & ~dark & ~sat))
+        k = np.flatnonzero(keep)
+        if len(k) == 0:
             return 0
-        Dp = self.D[p].astype(np.float64)
-        S = self.tables.S(nrm, wo, self.point_alpha[p]).astype(np.float64)
+        p, L, wo, nrm = p[k], L[k], wo[k], nrm[k]
+        Dp = self.D[p]
+        S = self.tables.S(nrm, wo, self.point_alpha[p])                      # (k, 3) float32
         # rho_d histograms: log(L / D) per channel into the point's bins
-        ratio = np.maximum(L, 1e-12) / Dp
-        b = np.floor((np.log(ratio) - self.log_lo) / self.log_width).astype(np.int64)
+        lr = np.log(np.maximum(L, np.float32(1e-12)) / Dp)
+        b = ((lr - np.float32(self.log_lo)) * np.float32(1.0 / self.log_width)).astype(np.int64)
+        b[lr < self.log_lo] = 0                               # (truncation towards 0 of negatives)
         np.clip(b, 0, self.bins - 1, out=b)
-        flat_h = self.hist.reshape(-1)
         fi = (p[:, None] * 3 + np.arange(3)) * self.bins + b
-        top = np.iinfo(np.uint16).max
+        flat_h = self.hist.reshape(-1)
+        SS, SL, SD = S * S, S * L, S * Dp
         if unique:
-            flat_h[fi] += 1
+            flat_h[fi] += 1                                   # p unique: no repeated index
             self.counts[p] += 1
-            self.sum_s2[p] += S * S
-            self.sum_sl[p] += S * L
-            self.sum_sd[p] += S * Dp
+            self.sum_s2[p] += SS
+            self.sum_sl[p] += SL
+            self.sum_sd[p] += SD
         else:
-            np.add.at(flat_h, fi.ravel(), 1)      # uint16: wraps only past 65535 repeats in one call
+            np.add.at(flat_h, fi.ravel(), 1)
             np.add.at(self.counts, p, 1)
-            np.add.at(self.sum_s2, p, S * S)
-            np.add.at(self.sum_sl, p, S * L)
-            np.add.at(self.sum_sd, p, S * Dp)
-        if (flat_h[fi] >= top - 1024).any():
-            full = np.unique(p[(flat_h[fi] >= top - 1024).any(axis=1)])
-            self.hist[full] = (self.hist[full] + 1) // 2    # keep the shape, halve the counts
+            np.add.at(self.sum_s2, p, SS)
+            np.add.at(self.sum_sl, p, SL)
+            np.add.at(self.sum_sd, p, SD)
+        top = np.iinfo(np.uint16).max - 1024
+        full = flat_h[fi] >= top
+        if full.any():
+            fp = np.unique(p[full.any(axis=1)])
+            self.hist[fp] = (self.hist[fp] + 1) // 2          # keep the shape, halve the counts
         st["samples"] += len(p)
         return int(len(p))
 
     # -- results ------------------------------------------------------------------------------
     def rho_d(self) -> tuple[np.ndarray, np.ndarray]:
-        """(P, 3) rho_d from the histograms (0 where unobserved) and (P,) sample counts."""
+        """(P, 3) rho_d from the histograms (0 where unobserved) and (P,) sample counts, internal order."""
         val, _ = histogram_percentile(self.hist, self.log_lo, self.log_width, self.percentile)
         return val, self.counts.copy()
 
@@ -459,4 +509,6 @@ class RGBPass:
             for c in np.unique(lab[~observed]):
                 m = (lab == c) & observed
                 out[(lab == c) & ~observed] = np.median(rd[m], axis=0) if m.any() else 0.0
-        return RGBResult(out.astype(np.float32), rho_s.astype(np.float32), counts, observed, csamp, den, notes)
+        r = self._rank                                        # back to the caller's point order
+        return RGBResult(out[r].astype(np.float32), rho_s.astype(np.float32), counts[r], observed[r], csamp,
+                         den, notes)
