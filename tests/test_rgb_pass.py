@@ -1,0 +1,202 @@
+"""The RGB pass (paper §5.3): rho_d histograms (Eq. 6), constant-memory rho_s (Eq. 8), frame glue.
+
+The synthetic sphere's images are rendered from brute-force quadrature of Eq. 4
+(:mod:`appfusion.rgb_synth`), not from the wavelet tables the pass uses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from appfusion.errors import AppFusionError
+from appfusion.frame import Intrinsics, make_pose
+from appfusion.rgb_pass import RGBPass, histogram_percentile
+from appfusion.rgb_synth import orbit_poses, synthetic_envmap, two_material_sphere
+
+# tables for the tests: coarser r grids than the defaults (faster to build, S ~1.5 % RMS)
+TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}
+
+
+@pytest.fixture(scope="module")
+def sphere_run():
+    sc = two_material_sphere(1200, env_n=32, seed=0, image_scale=0.4,
+                             materials=((0.08, (0.35, 0.3, 0.25)), (0.25, (0.5, 0.5, 0.5))))
+    poses = orbit_poses(sc.center, 0.45, 32, seed=1)
+    rng = np.random.default_rng(5)
+    frames = [sc.render(T, rng, noise_rel=0.01, noise_abs=0.001) for T in poses]
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, table_kwargs=TABLES)
+    for (rgb, depth, _), T in zip(frames, poses):
+        rp.add_frame(rgb, depth, sc.rgb_intrinsics, sc.depth_intrinsics, T, sc.depth_to_rgb)
+    return sc, poses, frames, rp, rp.result()
+
+
+def test_sphere_rho_d_and_rho_s_recovered(sphere_run):
+    sc, poses, frames, rp, res = sphere_run
+    ob = res.observed
+    assert ob.mean() > 0.8 and np.median(res.counts[ob]) >= 8
+    rel = np.abs(res.rho_d[ob] - sc.rho_d[ob]) / sc.rho_d[ob]
+    print(f"rho_d median rel err {np.median(rel):.4f}, rho_s rel err {res.rho_s / sc.rho_s - 1}")
+    assert np.median(rel) <= 0.03
+    assert (np.abs(res.rho_s / sc.rho_s - 1) <= 0.05).all()
+    assert np.isfinite(res.rho_d).all() and np.isfinite(res.rho_s).all()
+    assert res.cluster_samples.sum() == res.counts.sum() == rp.stats["samples"]
+    assert rp.stats["skipped_grazing"] > 0
+    assert not res.notes
+
+
+def test_unobserved_points_take_their_cluster_median(sphere_run):
+    sc, _, _, rp, res = sphere_run
+    un = ~res.observed
+    assert un.any()                                                   # the bottom of the sphere is never seen
+    for c in range(2):
+        m = (sc.labels == c)
+        np.testing.assert_allclose(res.rho_d[m & un], np.median(res.rho_d[m & res.observed], axis=0)[None].repeat((m & un).sum(), 0),
+                                   rtol=1e-6)
+
+
+def test_constant_memory_rho_s_equals_the_two_sweep_solution(sphere_run):
+    """Eq. 8 from the per-point sums with the final rho_d = Eq. 8 over stored samples (two sweeps)."""
+    sc, poses, frames, _, _ = sphere_run
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    rng = np.random.default_rng(3)
+    stored = []
+    for T in poses[:12]:
+        C = T[:3, 3]
+        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, C - sc.positions) > 0.3)
+        L = rng.uniform(0.05, 0.6, size=(len(vis), 3))
+        rp.add_samples(vis, L, C)
+        stored.append((vis, L, np.broadcast_to(C, (len(vis), 3))))
+    res = rp.result()
+    p = np.concatenate([s[0] for s in stored])
+    L = np.concatenate([s[1] for s in stored])
+    C = np.concatenate([s[2] for s in stored])
+    wo = C - sc.positions[p]
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    S = rp.tables.S(sc.normals[p], wo, sc.alphas[sc.labels[p]]).astype(np.float64)
+    D = rp.tables.D(sc.normals[p]).astype(np.float32).astype(np.float64)
+    rho_d = res.rho_d[p].astype(np.float64)
+    for c in range(2):
+        m = sc.labels[p] == c
+        two_sweep = (S[m] * (L[m] - D[m] * rho_d[m])).sum(0) / (S[m] ** 2).sum(0)
+        np.testing.assert_allclose(res.rho_s[c], np.maximum(two_sweep, 0), rtol=1e-4)
+
+
+def test_repeated_points_in_one_call_equal_separate_calls(sphere_run):
+    sc = sphere_run[0]
+    C = np.array([0.3, 0.2, 0.4])
+    p = np.array([5, 9, 5, 11, 9, 5])
+    L = np.linspace(0.1, 0.5, 18).reshape(6, 3)
+    a = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    b = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    a.add_samples(p, L, C)
+    for i in range(len(p)):
+        b.add_samples(p[i:i + 1], L[i:i + 1], C)
+    np.testing.assert_array_equal(a.hist, b.hist)
+    np.testing.assert_allclose(a.sum_sl, b.sum_sl, rtol=1e-12)
+    np.testing.assert_array_equal(a.result().counts, b.result().counts)
+
+
+def test_pixel_registration_mode_runs(sphere_run):
+    sc, poses, frames, _, _ = sphere_run
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables,
+                 registration="pixels")
+    for (rgb, depth, _), T in list(zip(frames, poses))[:6]:
+        rp.add_frame(rgb, depth, sc.rgb_intrinsics, sc.depth_intrinsics, T, sc.depth_to_rgb)
+    res = rp.result()
+    assert res.observed.sum() > 500 and np.isfinite(res.rho_d).all() and np.isfinite(res.rho_s).all()
+    ob = res.observed
+    assert np.median(np.abs(res.rho_d[ob] / sc.rho_d[ob] - 1)) < 0.1
+
+
+def test_histogram_percentile_matches_numpy():
+    rng = np.random.default_rng(0)
+    lo, hi, B = math.log(1 / 64), math.log(2.0), 64
+    w = (hi - lo) / B
+    x = np.exp(rng.normal(math.log(0.3), 0.4, size=(50, 400)))
+    b = np.clip(np.floor((np.log(x) - lo) / w).astype(int), 0, B - 1)
+    h = np.zeros((50, B), np.uint16)
+    for i in range(50):
+        np.add.at(h[i], b[i], 1)
+    for pct in (10, 50, 90):
+        got, tot = histogram_percentile(h, lo, w, pct)
+        ref = np.percentile(x, pct, axis=1)
+        assert (tot == 400).all()
+        assert (np.abs(np.log(got / ref)) <= w).all()                  # within one bin
+    got, tot = histogram_percentile(np.zeros((2, B), np.uint16), lo, w, 10)
+    assert (got == 0).all() and (tot == 0).all()
+
+
+def test_histogram_counts_are_halved_before_overflow(sphere_run):
+    sc = sphere_run[0]
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    C = sc.positions[0] + 0.4 * sc.normals[0]
+    L = np.full((1, 3), 0.3)
+    rp.add_samples([0], L, C)
+    i = rp._rank[0]
+    before = rp.rho_d()[0][i].copy()
+    b = rp.hist[i].argmax(axis=1)
+    rp.hist[i, np.arange(3), b] = 65000                                 # as if after 65000 frames
+    rp.add_samples([0], L, C)
+    assert rp.hist[i].max() < 40000 and (rp.hist[i, np.arange(3), b] > 30000).all()
+    np.testing.assert_allclose(rp.rho_d()[0][i], before, rtol=1e-6)
+
+
+def test_rejected_inputs(sphere_run):
+    sc, poses, frames, rp, _ = sphere_run
+    P, N, lab, al = sc.positions, sc.normals, sc.labels, sc.alphas
+    with pytest.raises(AppFusionError, match="labels"):
+        RGBPass(P, N, lab + 5, al, sc.env, tables=rp.tables)
+    with pytest.raises(AppFusionError, match="alphas"):
+        RGBPass(P, N, lab, [0.1, -1], sc.env, tables=rp.tables)
+    with pytest.raises(AppFusionError, match="normals"):
+        RGBPass(P, N[:10], lab, al, sc.env, tables=rp.tables)
+    bad = N.copy()
+    bad[7] = 0
+    with pytest.raises(AppFusionError, match="point 7"):
+        RGBPass(P, bad, lab, al, sc.env, tables=rp.tables)
+    with pytest.raises(AppFusionError, match="registration"):
+        RGBPass(P, N, lab, al, sc.env, tables=rp.tables, registration="nearest")
+    with pytest.raises(AppFusionError, match="environment|shape"):
+        RGBPass(P, N, lab, al, sc.env[0], tables=rp.tables)
+    rgb, depth, _ = frames[0]
+    with pytest.raises(AppFusionError, match="linear float"):
+        rp.add_frame((rgb * 255).astype(np.uint8), depth, sc.rgb_intrinsics, sc.depth_intrinsics, poses[0], sc.depth_to_rgb)
+    with pytest.raises(AppFusionError, match="rgb image"):
+        rp.add_frame(rgb[:-1], depth, sc.rgb_intrinsics, sc.depth_intrinsics, poses[0], sc.depth_to_rgb)
+    with pytest.raises(AppFusionError, match="depth image"):
+        rp.add_frame(rgb, depth[:, :-1], sc.rgb_intrinsics, sc.depth_intrinsics, poses[0], sc.depth_to_rgb)
+    with pytest.raises(AppFusionError, match="pose"):
+        rp.add_frame(rgb, depth, sc.rgb_intrinsics, sc.depth_intrinsics, np.full((4, 4), np.nan), sc.depth_to_rgb)
+    with pytest.raises(AppFusionError, match="out of range"):
+        rp.add_samples([len(P)], np.ones((1, 3)), [0, 0, 1])
+    with pytest.raises(AppFusionError, match="camera_center"):
+        rp.add_samples([1], np.ones((1, 3)), [0, np.nan, 1])
+
+
+def test_cluster_without_samples_is_reported(sphere_run):
+    sc = sphere_run[0]
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    m0 = np.flatnonzero(sc.labels == 0)[:50]
+    C = np.array([0.0, 0.0, 0.6])
+    rp.add_samples(m0, np.full((50, 3), 0.3), C)
+    res = rp.result()
+    assert res.cluster_samples[1] == 0 and (res.rho_s[1] == 0).all()
+    assert any("cluster 1" in n for n in res.notes)
+    assert (res.rho_d[sc.labels == 1] == 0).all()
+
+
+def test_dark_saturated_grazing_and_unlit_samples_are_skipped(sphere_run):
+    sc = sphere_run[0]
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    i = int(np.argmax(sc.normals[:, 2]))                                # top of the sphere
+    top = sc.positions[i] + 0.4 * sc.normals[i]
+    side = sc.positions[i] + 0.4 * np.cross(sc.normals[i], [1.0, 0, 0])  # grazing view
+    used = rp.add_samples([i] * 5, [[0.001] * 3, [0.99, 0.2, 0.2], [np.nan, 0.2, 0.2], [0.3] * 3, [0.3] * 3],
+                          np.array([top, top, top, side, sc.positions[i]]))
+    assert used == 0
+    st = rp.stats
+    assert st["skipped_dark"] == 1 and st["skipped_saturated"] == 2 and st["skipped_grazing"] == 2
+    assert rp.result().counts.sum() == 0
