@@ -88,7 +88,6 @@ def frame_timing(scene: str = "two-material", size=(320, 240), frames: int = 3, 
     """Seconds to render one frame of every stream (depth + IR from the depth camera, RGB from the RGB
     camera, camera models included, PNG writing excluded) of the object pass, averaged over ``frames``
     poses after one warm-up frame; the light transport precomputation is timed apart."""
-    from .render import shade_object  # noqa: F401  (imported for symmetry with render_error)
     from .scanner import render_depth_ir, render_radiance
     from .sensors import DepthModel, IRModel, RGBModel
 

@@ -16,13 +16,16 @@ Light transport (what is and is not simulated):
   ``f_r = rho_d / pi + rho_s f``; the integral is split as
 
   * diffuse: ``rho_d / pi * E`` with the irradiance ``E`` computed per vertex (background by a
-    lat-long cell quadrature with a ray cast per cell, emitters by their exact cells, the plane bounce)
-    and interpolated barycentrically;
-  * specular, emitters: a sum over the emitters' cells (about 1.5 degrees each, exact solid angles)
-    of ``L_e V f cos dw`` with per-vertex cell visibility interpolated barycentrically; an emitter is
-    skipped where a bound on its contribution is below 1e-4 of the pixel's diffuse radiance;
-  * specular, background and plane bounce: ``lobe_samples`` stratified importance samples of the
-    lobe per pixel, each with its own ray cast (exact visibility).
+    lat-long cell quadrature with a ray cast per cell, emitters by their exact cells, the plane's
+    black paper, the white circles as small area lights) and interpolated barycentrically;
+  * specular, emitters and circles: a sum over the cells (about 2 degrees each, exact solid angles) of
+    ``L_e V f cos dw`` with per-vertex cell visibility interpolated barycentrically; skipped where a
+    bound on the contribution is below 1e-4 of the pixel's diffuse radiance, summed over 3 x 3 groups
+    of cells far from the lobe's peak;
+  * specular, background and the plane's black paper: stratified importance samples of the lobe per
+    pixel, each with its own ray cast (exact visibility): a pilot of ``lobe_pilot`` samples, then 4x
+    or 16x more where this part is a large share of the pixel, with the pilot's mean radiance as a
+    control variate against the lobe's tabulated directional albedo.
 
 - The mirror ball: the view ray is reflected and looks up what it hits (plane or environment), times
   the ball's reflectance; ball pixels are super-sampled ``ball_supersample``^2 times.
@@ -34,14 +37,14 @@ every sample, 16 times more samples in every part) used to measure the error of 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from appfusion.errors import AppFusionError
 
 from . import materials as M
-from .envmaps import Environment, hemisphere_cells, latlong_cells
+from .envmaps import Environment, hemisphere_cells
 from .objects import ObjectModel
 
 EPS_RAY = 1e-4  # m, ray origin offset along the geometric normal
@@ -771,9 +774,30 @@ def _stratified(rng: np.random.Generator, n: int, m: int):
 
 def shade_object(scene: Scene, hits: Hits, sel: np.ndarray, cam_centre: np.ndarray, rng: np.random.Generator,
                  lobe_samples: int | None = None, return_parts: bool = False):
-    """RGB radiance of object hits ``sel`` (indices into ``hits``) seen from ``cam_centre``.
+    """RGB radiance of object hits seen from a camera (paper Eq. 2 with Eq. 1's BRDF, see module notes).
 
-    Returns (P, 3) radiance (and a dict of parts when ``return_parts``)."""
+    Parameters
+    ----------
+    scene : Scene
+        With an object; its lighting is precomputed on first use.
+    hits : Hits
+        Ray hits (e.g. of a camera's pixels).
+    sel : (P,) int array
+        Indices into ``hits`` of the object hits to shade.
+    cam_centre : (3,) array
+        Camera centre, metres (marker frame): the view direction of each point.
+    rng : numpy Generator
+        Jitter of the stratified lobe samples.
+    lobe_samples : int, optional
+        Cap on lobe samples per pixel (default ``scene.quality.lobe_samples``).
+    return_parts : bool
+        Also return the parts (diffuse, spec_emitters, spec_background, E, rho_d, lobe_samples).
+
+    Returns
+    -------
+    (P, 3) ndarray
+        Linear RGB radiance, in the environment's units.
+    """
     lt = scene.ensure_lighting()
     obj = scene.obj
     q = scene.quality
@@ -915,8 +939,10 @@ def _lobe_background(lt: "Lighting", mt, o: np.ndarray, n: np.ndarray, wo: np.nd
 
 def shade_simple(scene: Scene, o: np.ndarray, d: np.ndarray, hits: Hits | None = None,
                  footprint: np.ndarray | None = None) -> np.ndarray:
-    """Radiance along rays that do not end on the object: environment, plane, sheet, mirror ball
-    (the ball's reflected ray is traced once more: plane, object shadow or environment)."""
+    """Radiance (N, 3) along rays (origins ``o``, unit directions ``d``, (N, 3)) that do not end on the
+    object: environment, support plane (circles anti-aliased over ``footprint`` (N,) metres), sheet,
+    mirror ball (the reflected ray is traced once more: plane with its circles, or the environment,
+    times the ball's reflectance)."""
     lt = scene.ensure_lighting()
     if hits is None:
         hits = scene.intersect(o, d)

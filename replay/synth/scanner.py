@@ -82,7 +82,26 @@ class DepthIR:
 def render_depth_ir(scene: Scene, pose: np.ndarray, intr: Intrinsics, depth_model: DepthModel, ir_model: IRModel,
                     rng_depth: np.random.Generator, rng_ir: np.random.Generator, emitter: bool = True,
                     want_depth: bool = True, want_ir: bool = True) -> DepthIR:
-    """Depth (m, NaN invalid) and IR counts of the depth/IR camera at ``pose`` (see :mod:`.sensors`)."""
+    """Depth and IR images of the depth/IR camera (Kinect v1: one camera, emitter 7.5 cm to its +x).
+
+    Parameters
+    ----------
+    scene : Scene
+    pose : (4, 4) camera-to-world pose of the depth camera (marker frame)
+    intr : Intrinsics of the depth camera
+    depth_model, ir_model : the sensor models (:mod:`replay.synth.sensors`)
+    rng_depth, rng_ir : numpy Generators of the two noises
+    emitter : bool
+        Emitter on; off means no depth at all and IR background only.
+    want_depth, want_ir : bool
+
+    Returns
+    -------
+    DepthIR
+        ``depth`` (H, W) float32 metres, NaN invalid; ``ir`` (H, W) float32 counts 0..1023;
+        ``radiance_ir`` (H, W) the IR radiance before the camera response; ``z_true`` (H, W) exact depth
+        (NaN where nothing is hit); ``kind`` (H, W) what each pixel sees (render.KIND_*).
+    """
     H, W = intr.shape
     o, d, rn = camera_rays(pose, intr)
     hits = scene.intersect(o, d)
@@ -130,14 +149,14 @@ def render_depth_ir(scene: Scene, pose: np.ndarray, intr: Intrinsics, depth_mode
         rho[m] = 0.01
         m = k == KIND_OBJECT
         if np.any(m):
-            lt_obj = scene.obj
+            obj = scene.obj
             jj = li[m]
-            f = lt_obj.faces[hits.prim[jj]]
-            rho[m] = np.einsum("nk,nk->n", hits.bary[jj], lt_obj.ir_rho_d[f])
-            mat = lt_obj.face_material[hits.prim[jj]]
+            f = obj.faces[hits.prim[jj]]
+            rho[m] = np.einsum("nk,nk->n", hits.bary[jj], obj.ir_rho_d[f])
+            mat = obj.face_material[hits.prim[jj]]
             sv = np.zeros(len(jj))
             for mi in np.unique(mat):
-                mt = lt_obj.materials[mi]
+                mt = obj.materials[mi]
                 s = mat == mi
                 if mt.ir_rho_s > 0 and mt.lobe != "mirror":
                     sv[s] = mt.ir_rho_s * M.lobe_eval(mt.lobe, mt.alpha, wi[jj[s]], wo[jj[s]], n[jj[s]])
@@ -149,7 +168,24 @@ def render_depth_ir(scene: Scene, pose: np.ndarray, intr: Intrinsics, depth_mode
 
 def render_radiance(scene: Scene, pose_cam: np.ndarray, intr: Intrinsics, rng: np.random.Generator,
                     lobe_samples: int | None = None, supersample_ball: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Linear RGB radiance (H, W, 3) seen by a camera at ``pose_cam`` (camera-to-world) and the hit kind (H, W)."""
+    """Linear RGB radiance seen by a camera (no camera model: see :class:`.sensors.RGBModel`).
+
+    Parameters
+    ----------
+    scene : Scene
+    pose_cam : (4, 4) camera-to-world pose of *this* camera (for the RGB camera of a depth pose ``P``:
+        ``P @ inv(depth_to_rgb)``)
+    intr : Intrinsics
+    rng : numpy Generator (lobe sample jitter)
+    lobe_samples : int, optional
+    supersample_ball : bool
+        Super-sample pixels on and around the mirror ball.
+
+    Returns
+    -------
+    radiance : (H, W, 3) float64, the environment's units
+    kind : (H, W) int8, what each pixel's centre ray hits (render.KIND_*)
+    """
     H, W = intr.shape
     o, d, rn = camera_rays(pose_cam, intr)
     hits = scene.intersect(o, d)
