@@ -362,12 +362,22 @@ class Scene:
                 except Exception:  # a damaged cache file is recomputed
                     pass
         self.lighting = Lighting(self, progress=progress)
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(path.name + f".{__import__('os').getpid()}.tmp.npz")
-            np.savez(tmp, **self.lighting.arrays())
-            __import__("os").replace(tmp, path)
+        if cache_dir is not None:
+            self.save_lighting(cache_dir)
         return self.lighting
+
+    def save_lighting(self, cache_dir) -> None:
+        """Write the precomputed lighting into ``cache_dir`` (atomically; no-op if already there)."""
+        import os
+        from pathlib import Path
+
+        path = Path(cache_dir) / f"lighting-{self.cache_key()}.npz"
+        if self.lighting is None or path.exists():
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, **self.lighting.arrays())
+        os.replace(tmp, path)
 
 
 # -- precomputed lighting ------------------------------------------------------------------------

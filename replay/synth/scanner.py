@@ -272,7 +272,7 @@ def scene_names() -> list[str]:
 def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(640, 480), seed: int = 0,
                    device: str = "kinect1", detail: str = "full", quality: Quality | None = None,
                    radius_m: float = 0.6, references: bool = True, show_progress: bool = True,
-                   cache_dir: str | os.PathLike | None = None, log=None) -> Path:
+                   cache_dir: str | os.PathLike | None = None, workers: int | None = None, log=None) -> Path:
     """Render a complete synthetic session of ``scene`` into the new directory ``out``; returns its path.
 
     Parameters
@@ -301,6 +301,9 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     cache_dir : path-like, optional
         Where precomputed light transport is cached between runs (keyed by a hash of everything it
         depends on); None: recompute.
+    workers : int, optional
+        Processes rendering frames (the bytes do not depend on it). Default: 2 on a machine with at
+        least 2 cores for sessions of more than ~40 frames of 320 x 240, else 1.
     log : callable, optional
         Called with one-line status messages.
     """
@@ -406,47 +409,47 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     gt_lines = []
     n_total = sum(len(p.times) for p in passes)
     timings = {"depth_ir": [], "rgb": []}
-    with SessionWriter(out, device=device_name, intrinsics=intr, depth_to_ir=np.eye(4), depth_to_rgb=d2rgb,
-                       depth_units_per_m=5000.0, rgb_encoding="srgb8", emitter_position_m=C.EMITTER_POSITION_M,
-                       notes=f"synthetic scan of '{scene}' (seed {seed}, {device}); ground truth in truth/",
-                       extra=extra, fsync_interval_s=1.0) as wr:
-        bar = progress(range(n_total), total=n_total, desc=f"synth {scene}", enable=show_progress)
-        bar_it = iter(bar)
-        index = 0
-        for pno, ps in enumerate(passes):
-            sc = scenes[ps.scene_key]
-            e_t, g_t = rgb_model.drift(ps.times)
-            for i in range(len(ps.times)):
-                pose = ps.poses[i]
-                rs = np.random.SeedSequence([seed, 1000 + pno, i]).spawn(3)
-                rd, rir, rrgb = (np.random.default_rng(s) for s in rs)
+    job = _FrameJob(scenes, passes, depth_model, ir_model, rgb_model, di, ri, d2rgb, base_exposure, seed)
+    tasks = [(pno, i) for pno, ps in enumerate(passes) for i in range(len(ps.times))]
+    if workers is None:
+        workers = 2 if (os.cpu_count() or 1) >= 2 and n_total * w * h >= 40 * 320 * 240 else 1
+    pool = None
+    if workers > 1:
+        import tempfile
+        from concurrent.futures import ProcessPoolExecutor
+
+        # workers rebuild the scenes and load the precomputed light transport from a cache
+        lcache = Path(cache_dir) if cache_dir is not None else Path(tempfile.mkdtemp(prefix="synth-lighting-"))
+        for key in ("env", "obj"):
+            scenes[key].save_lighting(lcache)
+        spec = {"scene": scene, "detail": detail, "seed": seed, "quality": quality.to_json(), "size": (w, h),
+                "passes": passes, "base_exposure": base_exposure, "cache_dir": str(lcache)}
+        pool = ProcessPoolExecutor(max_workers=int(workers), initializer=_worker_init, initargs=(spec,))
+        results = pool.map(_worker_frame, tasks, chunksize=2)
+    else:
+        results = (job.render(pno, i) for pno, i in tasks)
+    try:
+        with SessionWriter(out, device=device_name, intrinsics=intr, depth_to_ir=np.eye(4), depth_to_rgb=d2rgb,
+                           depth_units_per_m=5000.0, rgb_encoding="srgb8", emitter_position_m=C.EMITTER_POSITION_M,
+                           notes=f"synthetic scan of '{scene}' (seed {seed}, {device}); ground truth in truth/",
+                           extra=extra, fsync_interval_s=1.0) as wr:
+            for index, ((pno, i), res) in enumerate(zip(tasks, progress(results, total=n_total, desc=f"synth {scene}",
+                                                                          enable=show_progress))):
+                ps = passes[pno]
+                imgs, rec, t_d, t_r = res
                 fr = Frame(index=index, timestamp=float(ps.times[i]), pass_name=ps.name, emitter=bool(ps.emitter[i]),
                            depth_intrinsics=di, ir_intrinsics=di, rgb_intrinsics=ri, depth_to_ir=np.eye(4),
-                           depth_to_rgb=d2rgb)
-                ta = time.perf_counter()
-                want_d, want_ir = "depth" in ps.streams, "ir" in ps.streams
-                dir_ = render_depth_ir(sc, pose, di, depth_model, ir_model, rd, rir, bool(ps.emitter[i]),
-                                       want_d, want_ir)
-                fr.depth, fr.ir = dir_.depth, dir_.ir
-                tb = time.perf_counter()
-                rec = {"index": index, "timestamp": format_timestamp(ps.times[i]), "pass": ps.name,
-                       "streams": list(ps.streams), "emitter": bool(ps.emitter[i])}
-                if "rgb" in ps.streams:
-                    L, _ = render_radiance(sc, pose @ rgb_pose_offset, ri, rrgb)
-                    expo = base_exposure[ps.scene_key] * float(e_t[i])
-                    fr.rgb = rgb_model.capture(L, expo, g_t[i], rrgb)
-                    rec.update(exposure=expo, wb_gains=[float(x) for x in g_t[i]])
-                    timings["rgb"].append(time.perf_counter() - tb)
-                timings["depth_ir"].append(tb - ta)
-                if "sheet_distance_m" in ps.extra and np.isfinite(ps.extra["sheet_distance_m"][i]):
-                    rec["sheet_distance_m"] = float(ps.extra["sheet_distance_m"][i])
+                           depth_to_rgb=d2rgb, **imgs)
                 wr.write(fr)
+                rec["index"] = index
                 frames_truth.append(rec)
-                gt_lines.append(format_timestamp(ps.times[i]) + "".join(f" {v:.10g}" for v in pose_to_tum(pose)))
-                index += 1
-                next(bar_it, None)
-        for _ in bar_it:
-            pass
+                timings["depth_ir"].append(t_d)
+                if t_r is not None:
+                    timings["rgb"].append(t_r)
+                gt_lines.append(format_timestamp(ps.times[i]) + "".join(f" {v:.10g}" for v in pose_to_tum(ps.poses[i])))
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
 
     # -- truth ----------------------------------------------------------------------------------------
     truth = out / "truth"
@@ -510,6 +513,74 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     (truth / "scene.json").write_text(json.dumps(scene_json, indent=2, default=float))
     say(f"synth: wrote {out} in {time.perf_counter() - t_start:.1f} s")
     return out
+
+
+class _FrameJob:
+    """Everything needed to render any frame of a session (in this process or a worker)."""
+
+    def __init__(self, scenes, passes, depth_model, ir_model, rgb_model, di, ri, d2rgb, base_exposure, seed):
+        self.scenes, self.passes = scenes, passes
+        self.depth_model, self.ir_model, self.rgb_model = depth_model, ir_model, rgb_model
+        self.di, self.ri, self.d2rgb = di, ri, d2rgb
+        self.rgb_pose_offset = invert_pose(d2rgb)
+        self.base_exposure, self.seed = base_exposure, seed
+        self._drift = {}
+
+    def render(self, pno: int, i: int):
+        """Images, truth record and timings of frame ``i`` of pass ``pno``; deterministic (seeded by
+        (seed, pass, frame))."""
+        from replay.session import format_timestamp
+
+        ps = self.passes[pno]
+        sc = self.scenes[ps.scene_key]
+        if pno not in self._drift:
+            self._drift[pno] = self.rgb_model.drift(ps.times)
+        e_t, g_t = self._drift[pno]
+        pose = ps.poses[i]
+        rs = np.random.SeedSequence([self.seed, 1000 + pno, i]).spawn(3)
+        rd, rir, rrgb = (np.random.default_rng(x) for x in rs)
+        ta = time.perf_counter()
+        dir_ = render_depth_ir(sc, pose, self.di, self.depth_model, self.ir_model, rd, rir, bool(ps.emitter[i]),
+                               "depth" in ps.streams, "ir" in ps.streams)
+        tb = time.perf_counter()
+        imgs = {"depth": dir_.depth, "ir": dir_.ir}
+        rec = {"timestamp": format_timestamp(ps.times[i]), "pass": ps.name, "streams": list(ps.streams),
+               "emitter": bool(ps.emitter[i])}
+        t_r = None
+        if "rgb" in ps.streams:
+            L, _ = render_radiance(sc, pose @ self.rgb_pose_offset, self.ri, rrgb)
+            expo = self.base_exposure[ps.scene_key] * float(e_t[i])
+            imgs["rgb"] = self.rgb_model.capture(L, expo, g_t[i], rrgb)
+            rec.update(exposure=expo, wb_gains=[float(x) for x in g_t[i]])
+            t_r = time.perf_counter() - tb
+        if "sheet_distance_m" in ps.extra and np.isfinite(ps.extra["sheet_distance_m"][i]):
+            rec["sheet_distance_m"] = float(ps.extra["sheet_distance_m"][i])
+        return imgs, rec, tb - ta, t_r
+
+
+_WORKER: dict = {}
+
+
+def _worker_init(spec: dict) -> None:
+    """Rebuild a session's scenes in a worker process (light transport from the cache)."""
+    obj = build_object(spec["scene"], spec["detail"], spec["seed"])
+    quality = Quality(**spec["quality"])
+    office = envmaps.office()
+    plane, ball = SupportPlane(), MirrorBall()
+    scenes = {"calib": Scene(office, sheet=Sheet(), quality=quality),
+              "env": Scene(office, plane=plane, ball=ball, quality=quality),
+              "obj": Scene(office, obj=obj, plane=plane, quality=quality)}
+    for key in ("env", "obj"):
+        scenes[key].ensure_lighting(cache_dir=spec["cache_dir"])
+    w, h = spec["size"]
+    d2rgb = C.depth_to_rgb()
+    _WORKER["job"] = _FrameJob(scenes, spec["passes"], DepthModel(), IRModel(seed=spec["seed"]),
+                               RGBModel(seed=spec["seed"]), C.depth_intrinsics(w, h), C.rgb_intrinsics(w, h), d2rgb,
+                               spec["base_exposure"], spec["seed"])
+
+
+def _worker_frame(task):
+    return _WORKER["job"].render(*task)
 
 
 def _sheet_E(scene: Scene) -> np.ndarray:
