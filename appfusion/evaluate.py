@@ -191,7 +191,7 @@ def truth_envmap(tdir: Path, name: str, n: int) -> np.ndarray:
     img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise AppFusionError(f"{p}: cannot read the truth environment map")
-    return oc.latlong_to_sphere(img[..., ::-1].astype(np.float64), n, sub=4).astype(np.float32)
+    return oc.latlong_to_sphere(img[..., 2::-1].astype(np.float64), n, sub=4).astype(np.float32)
 
 
 def envmap_error(env: np.ndarray, tdir: Path, covered: np.ndarray | None = None) -> float:

@@ -191,7 +191,7 @@ def latlong_to_sphere(img: np.ndarray, n: int, sub: int = 2) -> np.ndarray:
     m = n * sub
     d = sphere_directions(m)
     vals = sample_latlong(img, d)
-    shp = (2, n, sub, n, sub) + vals.shape[4:]
+    shp = (2, n, sub, n, sub) + vals.shape[3:]
     return vals.reshape(shp).mean(axis=(2, 4))
 
 

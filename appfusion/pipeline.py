@@ -61,7 +61,10 @@ class ScanConfig:
     frame_stride : int
         Use every n-th frame of each pass.
     ball_radius_m : float or None
-        Mirror-ball radius if known.
+        Mirror-ball radius if known (else the session meta's ``extra.ball_radius_m``, else fitted).
+    ball_max_scatter : float
+        Largest RMS scatter of the ball's depth points about the fitted sphere, relative to its
+        radius: a mirror returns weak, noisy depth (§4.3), so this is looser than a matte sphere's.
     mirror_reflectance : float
         Reflectance of the mirror ball (divided out of the environment map).
     box_height_m : float
@@ -82,6 +85,7 @@ class ScanConfig:
     frame_stride: int = 1
     ball_radius_m: float | None = None
     mirror_reflectance: float = 1.0
+    ball_max_scatter: float = 0.2
     box_height_m: float = 0.30
     texture_size: int = 1024
     snapshot_interval_s: float = 0.1
@@ -459,7 +463,11 @@ class ScanRunner:
             return
         cfg = self.config
         geo = _Geometry(self.source.meta, self.config)
-        light = LightingPass(n=cfg.envmap_n, radius=cfg.ball_radius_m, rho_mirror=cfg.mirror_reflectance)
+        meta = self.source.meta if isinstance(self.source.meta, dict) else {}
+        radius = cfg.ball_radius_m or (meta.get("extra") or {}).get("ball_radius_m")
+        rho_mirror = (meta.get("extra") or {}).get("mirror_ball", {}).get("reflectance", cfg.mirror_reflectance)
+        light = LightingPass(n=cfg.envmap_n, radius=radius, rho_mirror=rho_mirror,
+                             fit_kwargs={"max_rms_rel": cfg.ball_max_scatter})
         wb = None
         self._publish(force=True, stage="environment", guidance=GUIDANCE["environment"], tracking="ok")
         no_marker = 0
@@ -618,16 +626,16 @@ class ScanRunner:
         alpha = self._ir_result["alpha"] if getattr(self, "_ir_result", None) is not None else np.array([0.3])
         self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, **self._rgb_kwargs())
         wb = self._white_balancer(self.geometry)
-        # the RGB pass tracks its own frames (fusion re-run on them; the marker frame ties the passes)
-        rgb_geo = _Geometry(self.source.meta, self.config) if pass_name != self._obj_pass else None
+        # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
+        marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None
         self._publish(force=True, stage="rgb", guidance=GUIDANCE["rgb"], tracking="ok")
         used = no_marker = lost = 0
         for frame in self._frames(start, stop, "rgb"):
             if frame.rgb is None or frame.depth is None:
                 continue
             pose = self.poses.get(frame.index)
-            if pose is None and rgb_geo is not None:
-                track = rgb_geo.track(frame)
+            if pose is None and marker_pose is not None:
+                track = marker_pose.track(frame)
                 pose = track.pose
                 self._publish(tracking=track.state, markers_visible=track.markers_visible)
             if pose is None:
@@ -637,7 +645,11 @@ class ScanRunner:
             if b.reference is None:
                 no_marker += 1
                 continue
-            self.rgb.add_frame(b.rgb, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
+            # saturation is a property of the sensor's raw values, not of the balanced ones (a highlight
+            # may be brighter than the white paper): mark raw-saturated pixels NaN, which RGBPass skips
+            raw = frame.rgb_linear()
+            rgb_b = np.where((raw >= 0.98).any(axis=-1, keepdims=True), np.nan, b.rgb).astype(np.float32)
+            self.rgb.add_frame(rgb_b, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
                                frame.depth_to_rgb)
             used += 1
             if used % 10 == 0:
@@ -706,7 +718,7 @@ class ScanRunner:
         return WhiteBalancer(centers=centers, radius=mc.radius_m)
 
     def _rgb_kwargs(self) -> dict[str, Any]:
-        return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins}
+        return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf}
 
     # -- results -------------------------------------------------------------------------------------
     def result(self):
@@ -925,6 +937,33 @@ class _Track:
     pose: np.ndarray | None
     state: str
     markers_visible: int
+
+
+class _MarkerPose:
+    """Camera pose from the four circles of one frame (rigid fit of the detected centres to the printed
+    layout, marker frame). Needs the layout (``extra.markers.side_m``) and, to be unambiguous, the key
+    circle (``key_radius_m``); without a key circle the pose is only defined up to a quarter turn and
+    this tracker refuses."""
+
+    def __init__(self, meta: dict):
+        from .markers import marker_config_from_meta
+
+        self.cfg = marker_config_from_meta(meta if isinstance(meta, dict) else {})
+        if not (self.cfg.side_m and self.cfg.key_radius_m):
+            raise PassMissingError("the RGB pass has no depth-tracked poses, and marker poses need the printed "
+                                   "layout with its key circle (session meta extra.markers side_m, key_radius_m)")
+        h = self.cfg.side_m / 2
+        self.layout = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+
+    def track(self, frame: Frame) -> _Track:
+        from .fusion import kabsch
+        from .markers import detect_markers
+
+        det = detect_markers(frame, self.cfg)
+        if not det.complete:
+            return _Track(None, "lost", det.n)
+        T = kabsch(det.centers, self.layout)  # depth camera -> marker frame = camera-to-world pose
+        return _Track(T, "ok", 4)
 
 
 class _Geometry:

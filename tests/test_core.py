@@ -118,3 +118,11 @@ def test_cli_help_and_unknown(capsys):
     assert main([]) == 1
     with pytest.raises(SystemExit):
         main(["no-such-command"])
+
+
+def test_latlong_to_sphere_rgb_channels():
+    d = oc.latlong_directions(32)
+    rgb = np.stack([d[..., 0], d[..., 1], d[..., 2]], -1) + 2.0
+    m = oc.latlong_to_sphere(rgb, 16)
+    assert m.shape == (2, 16, 16, 3)
+    np.testing.assert_allclose(m, oc.sphere_directions(16) + 2.0, atol=0.03)
