@@ -373,24 +373,36 @@ class _EnvSampler:
 
     def __call__(self, d: np.ndarray) -> np.ndarray:
         """Radiance (..., 3) float32 in directions ``d`` (..., 3) (need not be unit; float32 math)."""
-        shp = d.shape[:-1]
-        d = np.asarray(d, dtype=np.float32).reshape(-1, 3)
+        d = np.asarray(d, dtype=np.float32)
+        return self.components(d[..., 0], d[..., 1], d[..., 2])
+
+    def components(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Radiance (..., 3) float32 in directions given by their components (arrays of one shape)."""
+        shp = np.shape(x)
+        x = np.ascontiguousarray(x, dtype=np.float32).reshape(-1)
+        y = np.ascontiguousarray(y, dtype=np.float32).reshape(-1)
+        z = np.ascontiguousarray(z, dtype=np.float32).reshape(-1)
         n = self.n
-        ax = np.abs(d)
-        inv = 1.0 / np.maximum(ax.sum(axis=1), np.float32(1e-30))
-        px, py = d[:, 0] * inv, d[:, 1] * inv
+        s = np.abs(x)
+        s += np.abs(y)
+        s += np.abs(z)
+        np.maximum(s, np.float32(1e-30), out=s)
         half = np.float32(0.5 * n)
-        off = np.float32(self.PAD - 0.5)
-        mx = (px + py + 1.0) * half + off
-        mx += (d[:, 2] < 0) * np.float32(n + 2 * self.PAD)
-        my = (px - py + 1.0) * half + off
-        out = np.empty((len(d), 3), np.float32)
+        np.divide(half, s, out=s)                                # half / (|x| + |y| + |z|)
+        px, py = x * s, y * s
+        off = np.float32(self.PAD - 0.5 + 0.5 * n)
+        mx = px + py
+        mx += off
+        mx += (z < 0) * np.float32(n + 2 * self.PAD)
+        my = px - py
+        my += off
+        out = np.empty((len(x), 3), np.float32)
         step = 32 * 32000                                        # remap maps: (rows < 32767, 32) blocks
-        for s in range(0, len(d), step):
-            k = min(step, len(d) - s)
+        for s0 in range(0, len(x), step):
+            k = min(step, len(x) - s0)
             cols = 32 if k % 32 == 0 else 1
-            out[s:s + k] = cv2.remap(self.atlas, mx[s:s + k].reshape(-1, cols), my[s:s + k].reshape(-1, cols),
-                                     self.interpolation, borderMode=cv2.BORDER_REPLICATE).reshape(k, 3)
+            out[s0:s0 + k] = cv2.remap(self.atlas, mx[s0:s0 + k].reshape(-1, cols), my[s0:s0 + k].reshape(-1, cols),
+                                       self.interpolation, borderMode=cv2.BORDER_REPLICATE).reshape(k, 3)
         return out.reshape(shp + (3,))
 
 
@@ -527,16 +539,21 @@ class DoubleProductTables:
     env : (2, N, N, 3) ndarray
         Environment radiance in the world (marker) frame, ``appfusion.octahedral`` layout.
     alphas : sequence of float
-        Roughnesses to build S tables for (the clusters' alphas); others are interpolated in log alpha
-        between the nearest two.
+        Roughnesses to build S tables for (the clusters' alphas). :meth:`S` at another alpha between
+        two built ones interpolates linearly in log alpha, which is accurate only for close alphas
+        (within ~10 %); use :meth:`add_alpha` for an exact table.
     res : int
         Texels per side of the mirror-frame square (power of two; default 32).
     n_theta, n_beta : int
         Kernel grid: theta nodes over [0, theta_max] and beta nodes over [0, 2 pi).
     theta_max_deg : float
         Largest view angle to the normal tabulated, degrees (samples beyond are grazing: S = 0, invalid).
-    light_keep, brdf_keep : int
-        Haar coefficients kept per lighting vector / per BRDF slice (non-linear approximation).
+    light_keep : int or None
+        Haar coefficients of the pre-rotated lighting kept per mirror node (of ``res^2``; scaled for
+        64^2 squares): NRH03's non-linear approximation. None (default) keeps all: the lighting is
+        streamed, not stored, so truncating it saves no memory (see the module notes).
+    brdf_keep : int or None
+        Haar coefficients kept per BRDF slice (of ``res^2``, scaled likewise); None keeps all.
     r_res : int or callable, optional
         Nodes per side of the mirror-direction grid, or ``alpha -> int``; default :func:`default_r_res`.
     d_res : int
@@ -599,7 +616,8 @@ class DoubleProductTables:
         # RMS error of S at alpha = 0.2, 0.35)
         texel = math.sqrt(4 * math.pi / (2 * self.env.shape[1] ** 2))
         res = self.res if cap / (self.res / 2) <= 2 * texel else 2 * self.res
-        sq = _cap_square(res, round(cap, 6), 4)
+        # kernel texel averages over 4 x 4 sub-samples (2 x 2 on 64^2 squares: rough lobes are smooth there)
+        sq = _cap_square(res, round(cap, 6), 4 if res <= self.res else 2)
         # lighting: texel integrals of the environment over ls x ls sub-samples (default 1)
         ls = max(1, int(self.light_sub or 1))
         lsq = sq if ls == 1 else _cap_square(res * ls, round(cap, 6), 4)
@@ -625,6 +643,7 @@ class DoubleProductTables:
         # texel (or sub-texel) centres and solid angles, sub-texels of one texel contiguous
         dw = lsq.solid_angles.reshape(res, ls, res, ls).transpose(0, 2, 1, 3).reshape(-1).astype(np.float32)
         dirs32 = lsq.directions.reshape(res, ls, res, ls, 3).transpose(0, 2, 1, 3, 4).reshape(-1, 3).astype(np.float32)
+        dx, dy, dz = (np.ascontiguousarray(dirs32[:, i]) for i in range(3))
         values = np.empty((len(nodes), nt * nb, 3), np.float32)
         timing = np.zeros(4)
 
@@ -633,7 +652,10 @@ class DoubleProductTables:
             c = s1 - s0
             ta = time.perf_counter()
             F = signed_frames(nodes[s0:s1], signs[s0:s1]).astype(np.float32)         # (c, 3, 3)
-            L = self._sampler(np.matmul(dirs32[None], F))          # (c, R^2 ls^2, 3): env at F^T w'
+            # world directions F^T w' of the block's texels, one component plane at a time
+            comp = [dx[None, :] * F[:, 0, i, None] + dy[None, :] * F[:, 1, i, None] + dz[None, :] * F[:, 2, i, None]
+                    for i in range(3)]
+            L = self._sampler.components(*comp)                     # (c, R^2 ls^2, 3): env at F^T w'
             L *= dw[None, :, None]
             if ls > 1:
                 L = L.reshape(c, R2, ls * ls, 3).sum(axis=2)

@@ -38,9 +38,10 @@ Samples
     wording: every depth pixel goes to its nearest point with :func:`appfusion.points.register_pixels`
     (a grid look-up, nearest up to a cell of ``max_dist / 2``), is transformed into the RGB camera and
     read there, and the pixels of one point in one frame (same ``w_o``) are averaged into one sample.
-    On the synthetic sphere of ``tests/test_rgb_pass.py`` (2000 points, 7 mm apart, sharp highlights
-    about one point wide) the grid's off-by-one-cell matches bias rho_s of the sharp material by
-    -10 %, against < 1 % with ``"points"``; with the paper's ~1 mm point spacing the two agree. A sample
+    On a synthetic sphere like that of ``tests/test_rgb_pass.py`` (1500 points, 7 mm apart, sharp
+    highlights about one point wide) the grid's off-by-one-cell matches biased rho_s of the sharp
+    material by -10 %, against < 1 % with ``"points"``; with the paper's ~1 mm point spacing the two
+    should agree (not measured). A sample
     is skipped when it is dark (max channel < ``dark``), saturated (any channel of any of its pixels
     >= ``saturated``), grazing (``n.w_o < min_cos``), outside the RGB image, or
     the point's ``D`` is below ``d_min`` times the largest D of the scene. Nothing produces NaN.

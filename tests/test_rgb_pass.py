@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 from appfusion.errors import AppFusionError
-from appfusion.frame import Intrinsics, make_pose
 from appfusion.rgb_pass import RGBPass, histogram_percentile
-from appfusion.rgb_synth import orbit_poses, synthetic_envmap, two_material_sphere
+from appfusion.rgb_synth import orbit_poses, two_material_sphere
 
 # tables for the tests: coarser r grids than the defaults (faster to build, S ~1.5 % RMS)
 TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}

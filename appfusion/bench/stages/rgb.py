@@ -29,7 +29,6 @@ frame against rho_s error).
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any
 
