@@ -163,3 +163,22 @@ def test_update_rate_vga_100k_points():
     fps = 1.0 / float(np.median(cpu))
     print(f"RGB update: {fps:.1f} frames/s (CPU), {used} samples per frame")
     assert fps >= 30.0
+
+
+def test_points_with_no_irradiance_are_skipped():
+    """A black lower hemisphere: points facing down have D ~ 0, are not sampled, and make no NaN."""
+    env = synthetic_envmap(16, seed=4)
+    env[1] = 0.0
+    n = fibonacci_sphere(400)
+    P = np.array([0.0, 0.0, 0.2]) + 0.1 * n
+    labels = np.zeros(len(n), np.int64)
+    T = DoubleProductTables(env, [0.2], r_res=17, d_res=9, kernel_grid=(4, 6))
+    rp = RGBPass(P, n, labels, [0.2], env, tables=T)
+    down = np.flatnonzero(n[:, 2] < -0.95)
+    assert len(down) and (T.D(n[down]).min(axis=1) < 0.01 * T.D(n).max()).all()   # (a sliver of sky only)
+    assert not rp.lit[rp._rank[down]].any()
+    cams = P[down] - 0.3 * n[down]                                        # in front of each point
+    assert rp.add_samples(down, np.full((len(down), 3), 0.2), cams) == 0
+    assert rp.stats["skipped_unlit"] == len(down)
+    res = rp.result()
+    assert np.isfinite(res.rho_d).all() and np.isfinite(res.rho_s).all() and res.counts.sum() == 0
