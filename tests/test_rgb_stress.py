@@ -177,7 +177,7 @@ def test_points_with_no_irradiance_are_skipped():
     down = np.flatnonzero(n[:, 2] < -0.95)
     assert len(down) and (T.D(n[down]).min(axis=1) < 0.01 * T.D(n).max()).all()   # (a sliver of sky only)
     assert not rp.lit[rp._rank[down]].any()
-    cams = P[down] - 0.3 * n[down]                                        # in front of each point
+    cams = P[down] + 0.3 * n[down]                                        # in front of each point
     assert rp.add_samples(down, np.full((len(down), 3), 0.2), cams) == 0
     assert rp.stats["skipped_unlit"] == len(down)
     res = rp.result()
