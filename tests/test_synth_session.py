@@ -107,9 +107,9 @@ def test_markers_visible_and_unsaturated(kinect_session):
     assert n == 6 and ok >= 5
 
 
-def test_same_seed_same_bytes(kinect_session, tmp_path):
+def test_same_seed_same_bytes_also_with_two_worker_processes(kinect_session, tmp_path):
     again = render_session("two-material", tmp_path / "again", frames=3, size=SIZE, seed=4, detail="test",
-                           show_progress=False)
+                           show_progress=False, workers=2)
     assert _digest(again) == _digest(kinect_session)
 
 

@@ -11,7 +11,7 @@ parts differently (``B`` by quadrature and lobe sampling, emitters by exact stra
 solid angle), which is what makes the integration both fast and accurate.
 
 The truth files ``envmaps/NAME.exr`` / ``.hdr`` are lat-long rasterisations of this function (each texel
-the mean of 4 x 4 sub-samples of ``B`` plus the exact emitter coverage of 8 x 8 sub-samples), linear
+the mean of 2 x 2 sub-samples of ``B`` plus the exact emitter coverage of 8 x 8 sub-samples), linear
 RGB, 512 x 256. Lat-long convention (the project's, see ``appfusion/octahedral.py``): row 0 is the
 zenith (+z), rows run to the nadir; column 0 starts at azimuth -pi; a direction is
 ``(cos(phi) sin(theta), sin(phi) sin(theta), cos(theta))``.
@@ -361,7 +361,7 @@ class Environment:
         return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
 
     # -- rasterisation and files -----------------------------------------------------------------
-    def to_latlong(self, height: int = 256, width: int | None = None, ss_bg: int = 3, ss_em: int = 8) -> np.ndarray:
+    def to_latlong(self, height: int = 256, width: int | None = None, ss_bg: int = 2, ss_em: int = 8) -> np.ndarray:
         """Box-filtered lat-long image (H, W, 3) float32 of the radiance: the background with ``ss_bg``^2
         and each emitter's coverage with ``ss_em``^2 sub-samples per texel (only in texels near the
         emitter), each sub-sample weighted by its solid angle (sin theta)."""
