@@ -145,7 +145,7 @@ def fake_stages(monkeypatch):
 
 def test_json_contract_and_failing_stage(tmp_path, fake_stages):
     logs = []
-    rep = run_bench(tmp_path / "w", quick=True, stages=["boom", "good", "alien", "slow", "nan", "no_such_stage"],
+    rep = run_bench(tmp_path / "w", quick=True, stages=["boom", "good", "alien", "slow", "nan", "scan"],
                     log=logs.append, plot=tmp_path / "pareto.png")
     # every metric, with its unit, goal and direction; null where no stage measured it
     assert set(rep["metrics"]) == set(METRICS)
@@ -162,7 +162,7 @@ def test_json_contract_and_failing_stage(tmp_path, fake_stages):
     assert rep["stages"]["boom"]["status"] == "error" and "synthetic failure" in rep["stages"]["boom"]["error"]
     assert rep["stages"]["good"]["status"] == "ok"
     assert rep["stages"]["alien"]["status"] == "error" and "not_a_metric" in rep["stages"]["alien"]["error"]
-    assert rep["stages"]["no_such_stage"]["status"] == "not built yet"
+    assert rep["stages"]["scan"]["status"] == "not built yet"
     assert any("boom FAILED" in line for line in logs)
     # budgets: the slow stage overran and was warned about
     assert rep["stages"]["slow"]["over_budget"] is True and rep["stages"]["good"]["over_budget"] is False
