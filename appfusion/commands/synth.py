@@ -34,6 +34,8 @@ def register(sub) -> None:
     p.add_argument("--contact", type=Path, metavar="PNG", help="also write a contact sheet PNG")
     p.add_argument("--cache", type=Path, default=None,
                    help=f"light-transport cache folder (default {default_cache_dir()})")
+    p.add_argument("--workers", type=int, default=None,
+                   help="frame-rendering processes (default: 2 for big sessions on >= 2 cores, else 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -54,7 +56,8 @@ def run(args) -> int:
     path = render_session(args.scene, args.out, frames=args.frames, size=args.size, seed=args.seed,
                           device=args.device, detail=args.detail, radius_m=args.radius,
                           references=not args.no_references, show_progress=not args.quiet,
-                          cache_dir=args.cache or default_cache_dir(), log=None if args.quiet else print)
+                          cache_dir=args.cache or default_cache_dir(), workers=args.workers,
+                          log=None if args.quiet else print)
     if args.contact:
         from replay.synth.contact import contact_sheet
 

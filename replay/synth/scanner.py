@@ -320,6 +320,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     if not 1 <= frames <= 100000:
         raise AppFusionError(f"frames per pass must be >= 1, got {frames}")
     w, h = _parse_size(size)
+    if workers is not None and int(workers) < 1:
+        raise AppFusionError(f"synth: --workers must be at least 1, got {workers}")
     if quality is None:
         quality = Quality.preset("test" if detail == "test" else "full")
     elif isinstance(quality, str):
