@@ -586,15 +586,19 @@ def _start_xvfb():
 
 
 @pytest.mark.gui
-@pytest.mark.slow  # ~15-25 s on 2 shared cores: three scans driven through the window
-def test_gui_under_xvfb(tmp_path):
+@pytest.mark.slow  # 15-30 s each on 2 shared cores: scans driven through the window
+@pytest.mark.parametrize("which", ["fake-engine", "real-engine"])
+def test_gui_under_xvfb(tmp_path, which):
+    """The window under Xvfb: with the stand-in engine (``xcb_`` tests but the real one), and with
+    the real ScanRunner on a synthetic geometry session (``test_xcb_real_engine``)."""
     proc, display = _start_xvfb()
     try:
         env = dict(os.environ, DISPLAY=display, QT_QPA_PLATFORM="xcb", APPFUSION_GUI_XCB="1",
                    APPFUSION_GUI_TMP=str(tmp_path))
         env.pop("WAYLAND_DISPLAY", None)
+        sel = "xcb_ and not real_engine" if which == "fake-engine" else "xcb_real_engine"
         cmd = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", "-o", "addopts=-ra",
-               str(Path(__file__)), "-k", "xcb_"]
+               str(Path(__file__)), "-k", sel]
         r = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
         print(r.stdout[-6000:], r.stderr[-3000:])
         assert r.returncode == 0, f"GUI tests under Xvfb failed:\n{r.stdout[-6000:]}\n{r.stderr[-3000:]}"
@@ -849,3 +853,77 @@ def test_xcb_live_device_record_and_passes(tmp_path):
     assert [v for _, k, v in r.events if k == "pass"] == ["environment", "geometry"]
     win.close()
     wait_until(lambda: not win.isVisible(), timeout=15, what="close")
+
+
+@xcb_only
+def test_xcb_real_engine(tmp_path):
+    """The real engine (appfusion.pipeline.ScanRunner) through the window, on a ray-cast geometry
+    session with markers (appfusion.geometry_synth): points appear, paint, undo, export."""
+    from PySide6 import QtGui
+
+    from appfusion.geometry_synth import make_sequence
+    from appfusion.gui.app import MainWindow
+    from appfusion.gui.colours import cluster_rgb
+    from replay.session import SessionWriter
+
+    seq = make_sequence(n_frames=30, width=320, height=240)
+    sess = tmp_path / "geometry-session"
+    K = seq.intrinsics
+    with SessionWriter(sess, device="geometry_synth", intrinsics={"depth": K, "ir": K, "rgb": K},
+                       depth_to_rgb=seq.depth_to_rgb, rgb_encoding="linear", extra=seq.meta_extra) as w:
+        for f in seq.frames:
+            w.write(f)
+    _app()
+    out = tmp_path / "out"
+    win = MainWindow(str(sess), out_dir=out, realtime=False, config=ScanConfig(n_points=3000, texture_size=256))
+    win.resize(1500, 900)
+    win.show()
+    wait_until(lambda: win.points.gl.paints > 0, what="the window to show")
+    win.a_start.trigger()
+    wait_until(lambda: win.worker.finished.is_set(), timeout=120, what="the real engine to finish")
+    wait_until(lambda: win._seq == win.worker.box.get()[0] and win._slow_seq == win._seq
+               and "Recording finished" in win.banner.text(),
+               what=lambda: f"the finished state (banner: {win.banner.text()!r}, worker {win.worker.status()})")
+    print(f"real engine: UI redraws/s while processing {win.stats.busy_rate():.1f}, "
+          f"mean/max tick {win.stats.cost_ms()} ms, {win.worker.box.rate():.1f} snapshots/s")
+    assert win.worker.state == "finished", win.worker.status()
+    s = win.snapshot
+    runner = win.worker.runner
+    assert s.stage == "done", (s.stage, win.worker.box.get()[0], win._seq, win.worker.box.get()[1].stage,
+                               runner.snapshot().stage, runner.messages[-5:])
+    assert s.positions is not None and len(win.points.positions) == len(s.positions) > 1000
+    assert win.info["tracking"].text().find("ok") >= 0 and s.markers_visible == 4
+    runner = win.worker.runner
+    # paint the object's top as a new cluster 1, seen from above
+    c = np.median(s.positions, axis=0)
+    win.points.gl.opts["center"] = QtGui.QVector3D(*(float(x) for x in c))
+    win.points.gl.setCameraPosition(elevation=89, azimuth=0, distance=0.5)
+    win.a_paint.setChecked(True)
+    win.brush_spin.setValue(30)
+    from appfusion.gui.paint import project_points
+
+    # aim at the point nearest to the camera: the top of the tallest part, facing up at the camera
+    mvp, view = win.points.camera_matrices()
+    xy, depth, vis = project_points(s.positions, mvp, view, win.points.gl.width(), win.points.gl.height())
+    cx, cy = xy[np.flatnonzero(vis)[np.argmin(depth[vis])]]
+    idx = win.points.paint_at([(cx, cy)], label=1)
+    assert len(idx) > 10
+    wait_until(lambda: win.snapshot.labels is not None and np.all(win.snapshot.labels[idx] == 1),
+               what="the engine's labels to carry the paint")
+    assert np.all(runner.result().labels[idx] == 1)
+    wait_until(lambda: win._seq == win.worker.box.get()[0] and win._slow_seq == win._seq, what="redraw")
+    assert np.allclose(win.points.colours[idx, :3], cluster_rgb([1])[0])
+    shoot(win, "real-engine")
+    win.a_undo.trigger()
+    wait_until(lambda: np.all(win.snapshot.labels[idx] != 1), what="the engine's undo")
+    assert np.all(runner.result().labels != 1)
+    win.points.paint_at([(cx, cy)], label=1)
+    win.a_paint.setChecked(False)
+    win.a_export.trigger()
+    wait_until(lambda: win.exported is not None or (win.export_job.done.is_set() and win.export_job.error),
+               timeout=60, what="the export")
+    assert win.export_job.error is None, win.export_job.error
+    for key in ("glb", "obj", "ply", "report"):
+        assert Path(win.exported[key]).exists(), key
+    win.close()
+    wait_until(lambda: not win.isVisible(), timeout=30, what="close")

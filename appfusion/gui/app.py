@@ -887,7 +887,7 @@ class MainWindow(QtWidgets.QMainWindow):
                              f"(to {self.out_dir}).", "ok")
         elif w.state == "finished":
             what = "Recording finished" if not w.is_live else "Device stream ended"
-            self._set_banner(f"{what}: {frames} frames scanned. Paint clusters if needed, then Export "
+            self._set_banner(f"{what}: {frames} frames processed. Paint clusters if needed, then Export "
                              f"(to {self.out_dir}).", "ok")
         elif w.source.error is not None:  # the engine goes on with the frames it has
             self._set_banner(f"Source lost - {w.source.error}. Processing the {frames} frames received so far; "

@@ -86,7 +86,7 @@ class EnvMapView(pg.GraphicsLayoutWidget):
     def __init__(self, parent=None):
         super().__init__(parent)
         self.setBackground((20, 20, 24))
-        self.vb, self.item, self.label = _image_box(self, "environment map: none yet (environment pass)", 0, 0)
+        self.vb, self.item, self.label = _image_box(self, "no environment map yet", 0, 0)
         self._fp = None
         self.coverage = float("nan")
 
@@ -174,6 +174,11 @@ class HBSABView(pg.GraphicsLayoutWidget):
         row = h[mid]
         ok = np.isfinite(row)
         self.curve_m.setData(theta[ok], row[ok])
+        # scale the slice to the measurements: a fitted lobe much sharper than the bins can reach
+        # peaks far above them, and would flatten the measured points to a line at zero
+        ref = row[ok] if ok.any() else (f[mid] if f is not None else np.ones(1))
+        top = float(np.nanmax(ref)) if np.any(np.isfinite(ref)) else 1.0
+        self.plot.setYRange(min(0.0, float(np.nanmin(ref)) if ok.any() else 0.0), max(top, 1e-9) * 1.4, padding=0)
         if f is not None:
             self.img_f.setImage(np.nan_to_num(f), autoLevels=False, levels=(0, hi))
             self.lab_f.setText(f"Ward{a_txt}")
@@ -269,30 +274,40 @@ class PlotsView(pg.GraphicsLayoutWidget):
             self.alpha_bars.setData(x=x, y=a, brush=brushes)
             self.alpha_err.setData(x=x, y=a, top=s, bottom=s)
             self.p_alpha.getAxis("bottom").setTicks([[(i, str(i)) for i in range(len(a))]])
+            self.p_alpha.setXRange(-0.5, len(a) - 0.5, padding=0.05)
+            hi = float(np.nanmax(a + s)) if np.any(np.isfinite(a + s)) else 0.5
+            self.p_alpha.setYRange(0, max(hi * 1.15, 0.05), padding=0)
         f, v = self._series(hist.get("alpha"))
         self._curves(self.p_conv, self.conv_curves, f, v)
         f, v = self._series(hist.get("rho_s"))
         self._curves(self.p_rhos, self.rhos_curves, f, v)
 
 
-def point_spacing(positions: np.ndarray, n_query: int = 100, chunk: int = 16384) -> float:
-    """Typical distance between neighbouring points (metres): the median, over ``n_query`` random
-    points, of the exact distance to their nearest neighbour among all points (numpy, chunked)."""
+def point_spacing(positions: np.ndarray, n_query: int = 100, k: int = 6, chunk: int = 16384) -> float:
+    """Typical spacing of surface points (metres): the median, over ``n_query`` random points, of the
+    distance to their ``k``-th nearest neighbour (numpy, chunked).
+
+    The k-th (not the first) neighbour makes it a measure of density that holds for random samples as
+    well as for regular ones: on a surface of density rho it is 1.07 / sqrt(rho) for a hexagonal
+    lattice and 1.38 / sqrt(rho) for uniformly random points (k = 6), whereas the nearest neighbour of
+    random points is only 0.47 / sqrt(rho) and discs of that size leave holes.
+    """
     p = np.asarray(positions, np.float32).reshape(-1, 3)
     P = len(p)
-    if P < 2:
+    if P <= k:
         return 0.004
     qi = np.random.default_rng(0).choice(P, min(P, n_query), replace=False)
     q = p[qi]
-    best = np.full(len(q), np.inf, np.float32)
+    best = np.full((len(q), k), np.inf, np.float32)
     qq = np.sum(q * q, 1)[:, None]
     for a in range(0, P, chunk):
         blk = p[a:a + chunk]
         d2 = qq + np.sum(blk * blk, 1)[None, :] - 2.0 * q @ blk.T
         own = (qi >= a) & (qi < a + len(blk))
         d2[np.flatnonzero(own), qi[own] - a] = np.inf
-        np.minimum(best, d2.min(axis=1), out=best)
-    s = float(np.sqrt(max(np.median(best), 0.0)))
+        both = np.concatenate([best, d2], axis=1)
+        best = np.partition(both, k - 1, axis=1)[:, :k]
+    s = float(np.sqrt(max(np.median(best.max(axis=1)), 0.0)))
     return s if np.isfinite(s) and s > 0 else 0.004
 
 
@@ -409,7 +424,7 @@ class PointsView(QtWidgets.QWidget):
         if p is None or len(p) == 0:
             self.scatter.setData(pos=np.zeros((0, 3), np.float32))
             return
-        self.point_size = point_spacing(p) * 1.6
+        self.point_size = point_spacing(p) * 1.2
         self.scatter.setData(pos=p, color=colours, size=self.point_size)
         if not self._fitted:
             self.fit_camera()
