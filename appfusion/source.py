@@ -165,3 +165,50 @@ class Source(abc.ABC):
 
     @abc.abstractmethod
     def _frames(self) -> Iterator[Frame]: ...
+
+
+class IndexedRecording(Source):
+    """A recording whose frames can be decoded one by one: ``frame(i)`` and ``__len__``.
+
+    Gives the seek / iterate behaviour shared by the recording readers: :meth:`seek` takes
+    negative indices from the end and ``len`` for the end; iteration decodes frames from the current
+    position, and a frame that fails to decode raises its
+    :class:`~appfusion.errors.SessionFormatError`, or with ``skip_bad`` is skipped and listed in
+    ``bad_frames`` as ``(path, line, reason)``. Subclasses set ``self._pos = 0``, ``self.skip_bad``
+    and ``self.bad_frames`` in their constructor.
+    """
+
+    is_recording = True
+
+    @abc.abstractmethod
+    def frame(self, index: int) -> Frame:
+        """Decode frame ``index``."""
+
+    @abc.abstractmethod
+    def __len__(self) -> int: ...
+
+    def seek(self, index: int) -> None:
+        """Make the next frame yielded the one at ``index`` (negative: from the end; ``len``: the end)."""
+        n = len(self)
+        if not -n <= index <= n:
+            raise IndexError(f"{self.name}: cannot seek to frame {index} (the recording has {n} frames)")
+        self._pos = index + n if index < 0 else index
+
+    def _open(self) -> None:
+        pass
+
+    def _close(self) -> None:
+        pass
+
+    def _frames(self) -> Iterator[Frame]:
+        from .errors import SessionFormatError
+
+        while self._pos < len(self):
+            i = self._pos
+            self._pos += 1
+            try:
+                yield self.frame(i)
+            except SessionFormatError as e:
+                if not self.skip_bad:
+                    raise
+                self.bad_frames.append((e.path, e.line, e.reason))

@@ -17,7 +17,7 @@ import numpy as np
 
 from appfusion.errors import AppFusionError, SessionFormatError
 from appfusion.frame import Frame, Intrinsics
-from appfusion.source import Source, StreamCaps
+from appfusion.source import IndexedRecording, StreamCaps
 
 from .session import _rates, read_image
 
@@ -106,14 +106,13 @@ def read_camera_json(path: Path) -> Intrinsics:
         raise SessionFormatError(path, f"bad camera intrinsics: {e}") from None
 
 
-class PairedReader(Source):
+class PairedReader(IndexedRecording):
     """A recording of depth + colour image pairs (TUM, Redwood) as a seekable Source.
 
     Subclasses fill :attr:`items`, :attr:`poses`, :attr:`_intrinsics`, :attr:`units_per_m` and
     :attr:`_meta` in their constructor, then call :meth:`_finish`.
     """
 
-    is_recording = True
     format_name = "paired"
 
     def __init__(self, path: str | os.PathLike, skip_bad: bool = False):
@@ -172,29 +171,6 @@ class PairedReader(Source):
     def __len__(self) -> int:
         return len(self.items)
 
-    def seek(self, index: int) -> None:
-        """Make the next frame yielded the one at ``index`` (negative: from the end; ``len``: the end)."""
-        n = len(self)
-        if not -n <= index <= n:
-            raise IndexError(f"{self.name}: cannot seek to frame {index} (the recording has {n} frames)")
-        self._pos = index + n if index < 0 else index
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
-
-    def _frames(self) -> Iterator[Frame]:
-        while self._pos < len(self.items):
-            i = self._pos
-            self._pos += 1
-            try:
-                yield self.frame(i)
-            except SessionFormatError as e:
-                if not self.skip_bad:
-                    raise
-                self.bad_frames.append((e.path, e.line, e.reason))
 
     @property
     def timestamps(self) -> np.ndarray:

@@ -41,7 +41,7 @@ import numpy as np
 
 from appfusion.errors import AppFusionError, SessionFormatError
 from appfusion.frame import STREAMS, Frame, Intrinsics, linear_to_srgb, srgb_to_linear
-from appfusion.source import Source, StreamCaps
+from appfusion.source import IndexedRecording, Source, StreamCaps
 
 __all__ = [
     "FORMAT", "VERSION", "DEFAULT_UNITS_PER_M", "INDEX_FILES", "SessionWriter", "SessionReader",
@@ -880,7 +880,7 @@ def _rates(times: dict[str, np.ndarray]) -> dict[str, float]:
     return out
 
 
-class SessionReader(Source):
+class SessionReader(IndexedRecording):
     """Replay a session directory as a :class:`~appfusion.source.Source`.
 
     Parameters
@@ -905,8 +905,6 @@ class SessionReader(Source):
     events : list of (t, key, value)
         From ``events.txt``, in time order.
     """
-
-    is_recording = True
 
     def __init__(self, path: str | os.PathLike, skip_bad: bool = False, check_images: bool = True):
         super().__init__()
@@ -1030,29 +1028,6 @@ class SessionReader(Source):
     def __len__(self) -> int:
         return len(self._groups)
 
-    def seek(self, index: int) -> None:
-        """Make the next frame yielded the one at ``index`` (negative: from the end; ``len``: the end)."""
-        n = len(self)
-        if not -n <= index <= n:
-            raise IndexError(f"{self.name}: cannot seek to frame {index} (the recording has {n} frames)")
-        self._pos = index + n if index < 0 else index
-
-    def _open(self) -> None:
-        pass
-
-    def _close(self) -> None:
-        pass
-
-    def _frames(self) -> Iterator[Frame]:
-        while self._pos < len(self._groups):
-            i = self._pos
-            self._pos += 1
-            try:
-                yield self.frame(i)
-            except SessionFormatError as e:
-                if not self.skip_bad:
-                    raise
-                self.bad_frames.append((e.path, e.line, e.reason))
 
     def stream_timestamps(self) -> dict[str, np.ndarray]:
         """Timestamps (seconds) of the frames that have each stream, without decoding images."""
