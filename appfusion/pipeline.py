@@ -58,6 +58,9 @@ class ScanConfig:
         Percentile of L/D taken as rho_d (Eq. 6; paper: 10th).
     rho_d_bins : int
         Per-point histogram size for rho_d.
+    rho_d_estimator : {"lsq", "percentile"}
+        rho_d and rho_s by the joint least squares of Eq. 5 (default) or by the paper's Eq. 6 + 8
+        (:class:`appfusion.rgb_pass.RGBPass`).
     frame_stride : int
         Use every n-th frame of each pass.
     ball_radius_m : float or None
@@ -82,6 +85,7 @@ class ScanConfig:
     k_clusters: int | None = None
     rho_d_percentile: float = 10.0
     rho_d_bins: int = 64
+    rho_d_estimator: str = "lsq"
     frame_stride: int = 1
     ball_radius_m: float | None = None
     mirror_reflectance: float = 1.0
@@ -718,7 +722,8 @@ class ScanRunner:
         return WhiteBalancer(centers=centers, radius=mc.radius_m)
 
     def _rgb_kwargs(self) -> dict[str, Any]:
-        return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf}
+        return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf,
+                "estimator": self.config.rho_d_estimator}
 
     # -- results -------------------------------------------------------------------------------------
     def result(self):

@@ -59,7 +59,8 @@ def test_unobserved_points_take_their_cluster_median(sphere_run):
 def test_constant_memory_rho_s_equals_the_two_sweep_solution(sphere_run):
     """Eq. 8 from the per-point sums with the final rho_d = Eq. 8 over stored samples (two sweeps)."""
     sc, poses, frames, _, _ = sphere_run
-    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables)
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=sphere_run[3].tables,
+                 estimator="percentile")
     rng = np.random.default_rng(3)
     stored = []
     for T in poses[:12]:
@@ -81,6 +82,50 @@ def test_constant_memory_rho_s_equals_the_two_sweep_solution(sphere_run):
         m = sc.labels[p] == c
         two_sweep = (S[m] * (L[m] - D[m] * rho_d[m])).sum(0) / (S[m] ** 2).sum(0)
         np.testing.assert_allclose(res.rho_s[c], np.maximum(two_sweep, 0), rtol=1e-4)
+
+
+def test_lsq_estimator_equals_the_stored_sample_least_squares(sphere_run):
+    """The constant-memory "lsq" estimator = the least-squares solution of Eq. 5 over stored samples
+    (rho_d per point, rho_s per cluster), solved here directly with a sparse solver."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.linalg import lsqr
+
+    sc, poses, _, rp0, _ = sphere_run
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
+                 estimator="lsq", min_lsq_samples=1)
+    rng = np.random.default_rng(5)
+    D0 = rp0.tables.D(sc.normals).astype(np.float64)
+    stored = []
+    for T in poses[:12]:
+        C = T[:3, 3]
+        wo = C - sc.positions
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)   # clear of the grazing cut-off
+        wo = wo[vis]
+        S0 = rp0.tables.S(sc.normals[vis], wo, sc.alphas[sc.labels[vis]]).astype(np.float64)
+        L = D0[vis] * sc.rho_d[vis] + S0 * sc.rho_s[sc.labels[vis]]
+        L *= rng.uniform(0.9, 1.1, size=L.shape)               # noise, so that the fit is not exact
+        ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)     # clear of the saturated / dark cut-offs
+        vis, L = vis[ok], L[ok]
+        assert rp.add_samples(vis, L, C) == len(vis)
+        stored.append((vis, L, np.broadcast_to(C, (len(vis), 3))))
+    res = rp.result()
+    p = np.concatenate([s[0] for s in stored])
+    L = np.concatenate([s[1] for s in stored])
+    C = np.concatenate([s[2] for s in stored])
+    wo = C - sc.positions[p]
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    S = rp.tables.S(sc.normals[p], wo, sc.alphas[sc.labels[p]]).astype(np.float64)
+    D = rp.tables.D(sc.normals[p]).astype(np.float32).astype(np.float64)
+    P, k = len(sc.positions), len(p)
+    for ch in range(3):
+        A = coo_matrix((np.r_[D[:, ch], S[:, ch]], (np.r_[np.arange(k), np.arange(k)],
+                        np.r_[p, P + sc.labels[p]])), shape=(k, P + 2)).tocsr()
+        x = lsqr(A, L[:, ch], atol=1e-14, btol=1e-14, iter_lim=20000)[0]
+        assert (x[P:] > 0).all()                       # no clamping in play: the solutions must agree
+        np.testing.assert_allclose(res.rho_s[:, ch], x[P:], rtol=2e-3)
+        seen = np.unique(p)
+        np.testing.assert_allclose(res.rho_d[seen, ch], x[seen], rtol=2e-3, atol=1e-4)
 
 
 def test_repeated_points_in_one_call_equal_separate_calls(sphere_run):
