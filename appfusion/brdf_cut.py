@@ -480,6 +480,9 @@ class BRDFCut:
         The Ward fit of a cluster uses its interior leaves (a leaf whose points and ``interior_k``
         nearest leaves all carry the cluster's label) when they hold at least
         ``interior_min_fraction`` of its weight; boundary leaves mix two materials' lobes.
+    emitter : None, "flat" or (k, theta, shift)
+        The emitter's intensity distribution (IR profile, §6): the Ward fits then model clipped
+        highlight texels instead of leaving them out (:func:`appfusion.ward_fit.fit_ward`).
     fit_min_weight : float
         Texel weight threshold of the Ward fits.
     diffuse : {"min", "fit"}
@@ -497,7 +500,7 @@ class BRDFCut:
                  noise_ratio: float = 1.0, split_gain: float = 1.25, assign_margin: float = 4.0,
                  fit_min_weight: float = 1.0, diffuse: str = "fit", dtype=np.float32, seed: int = 0,
                  size: float | None = None, leaf_margin: float | None = 9.0, interior_k: int = 6,
-                 interior_min_fraction: float = 0.3):
+                 interior_min_fraction: float = 0.3, emitter=None):
         P, Nn = _check_points(positions, normals)
         self.positions, self.normals = P, Nn
         self.tree = build_tree(P, Nn, min_leaf=min_leaf, size=size)
@@ -524,6 +527,7 @@ class BRDFCut:
         self.interior_min_fraction = float(interior_min_fraction)
         self.fit_min_weight = float(fit_min_weight)
         self.diffuse = diffuse
+        self.emitter = emitter
         self.seed = int(seed)
         self.overrides = np.full(len(P), -1, np.int32)
         self._prev_labels: np.ndarray | None = None
@@ -792,7 +796,8 @@ class BRDFCut:
                 use = inner[c]
                 if use.total_weight()[0] < self.interior_min_fraction * hb.total_weight()[0]:
                     use = hb
-                fitter = self._fitters.setdefault(c, WardFitter(self.fit_min_weight, self.diffuse))
+                fitter = self._fitters.setdefault(c, WardFitter(self.fit_min_weight, self.diffuse,
+                                                                         emitter=self.emitter))
                 try:
                     wf = fitter.fit(use)
                     status = "fitted"

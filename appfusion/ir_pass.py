@@ -72,6 +72,9 @@ class IRPass:
     def __init__(self, positions, normals, profile, hbsab_n: int = DEFAULT_N, min_leaf: int = 64,
                  max_angle_deg: float = DEFAULT_MAX_ANGLE_DEG, max_dist: float | None = None, areas=None,
                  k: int | None = None, **cut_kwargs):
+        if "emitter" not in cut_kwargs:                    # clipped highlights are modelled with it
+            cut_kwargs["emitter"] = ((profile.k, profile.theta, profile.shift)
+                                     if getattr(profile, "emitter_model", "") == "shifted_gamma" else "flat")
         self.cut = BRDFCut(positions, normals, n=hbsab_n, min_leaf=min_leaf, max_angle_deg=max_angle_deg,
                            areas=areas, k=k, **cut_kwargs)
         self.positions = np.ascontiguousarray(self.cut.positions, dtype=np.float32)

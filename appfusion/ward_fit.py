@@ -29,6 +29,26 @@ ratio ``g = cos theta_h / sqrt(cos theta_i cos theta_o)`` differs from 1 by up t
 
     v_t = d + rho_s * g_t * (J_0 + sum_k m_kt J_k)(alpha)
 
+Clipped highlights (censored texels)
+------------------------------------
+A Kinect's 10-bit IR clips a glossy highlight: on the synthetic two-material scan 99 % of the samples
+within 3 degrees of the lobe's axis and half of those at 3-6 degrees are saturated. Leaving those texels
+out (below) leaves only the flanks, and a lobe far too sharp and far too high fits them (alpha 0.02,
+rho_s 1e9 instead of 0.06 / 0.15: the model is free wherever texels were dropped). When the emitter's
+intensity distribution is known (``emitter=(k, theta, shift)``, the shifted-Gamma model of §6 from the
+IR profile; ``emitter="flat"`` for an even flood light), every texel is used instead and its value is
+modelled as the mean of *clipped* samples: with ``Z = (t + shift) / (k theta + shift)``,
+``t ~ Gamma(k, theta)`` the emitter's multiplicative factor (mean 1), a texel of true mean ``mu`` whose
+samples clip at ``c`` holds
+
+    E[min(mu Z, c)] = mu (k theta P(k + 1, a / theta) + shift P(k, a / theta)) / (k theta + shift)
+                      + c (1 - P(k, a / theta)),        a = c (k theta + shift) / mu - shift,
+
+(``P`` the regularised lower incomplete gamma function), a Tobit-style censored mean. ``c`` is the
+clip level in reflectance units, the median value of the texels whose samples are (almost) all
+saturated. The partially saturated texels then constrain the peak. This is used when at least one
+texel is saturated beyond ``max_saturated``; otherwise the fit is the plain one below.
+
 Fit
 ---
 Texels with weight > ``min_weight`` are used, except those where saturated pixels carry more than
@@ -71,6 +91,38 @@ ALPHA_MIN, ALPHA_MAX = 0.01, 1.0
 DEFAULT_QUAD = 12
 #: alpha values of the brute-force initial grid
 _ALPHA_GRID = np.geomspace(ALPHA_MIN, ALPHA_MAX, 21)
+
+
+def censored_mean(mu: np.ndarray, c: float, emitter) -> np.ndarray:
+    """Mean of ``min(mu Z, c)`` for the emitter factor ``Z`` (module docstring, "Clipped highlights").
+
+    Parameters
+    ----------
+    mu : array
+        True (unclipped) texel means, >= 0.
+    c : float
+        Clip level, same units as ``mu``.
+    emitter : "flat" or (k, theta, shift)
+        ``Z = 1`` (flat) or the shifted-Gamma factor ``(t + shift) / (k theta + shift)``.
+
+    Returns
+    -------
+    array
+        The expected texel value, ``<= min(mu, c)``.
+    """
+    from scipy.special import gammainc
+
+    mu = np.maximum(np.asarray(mu, dtype=np.float64), 0.0)
+    if isinstance(emitter, str):
+        return np.minimum(mu, c)
+    k, theta, shift = (float(x) for x in emitter)
+    m0 = k * theta + shift
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(mu > 0, c * m0 / np.where(mu > 0, mu, 1.0) - shift, np.inf)
+    x = np.maximum(a, 0.0) / theta
+    pk = np.where(a > 0, gammainc(k, np.minimum(x, 1e300)), 0.0)
+    pk1 = np.where(a > 0, gammainc(k + 1.0, np.minimum(x, 1e300)), 0.0)
+    return mu * (k * theta * pk1 + shift * pk) / m0 + c * (1.0 - pk)
 
 
 def one_blas_thread():
@@ -184,6 +236,20 @@ def texel_lobe(alpha: float, n: int, texels: np.ndarray, moments: np.ndarray, q:
     return val, np.einsum("tk,kt->t", dJ, coef)
 
 
+def texel_nodes(alpha: float, n: int, texels: np.ndarray, moments: np.ndarray, q: int = 6):
+    """Lobe values at each texel's quadrature nodes and the node weights that average them as
+    :func:`texel_lobe` does: ``texel_lobe = sum(values * weights, axis=1)``. Both (T, q*q).
+
+    Used where a non-linear function of the lobe (the sensor's clipping) must be averaged over the
+    texel rather than applied to its mean.
+    """
+    tan2, ch, rows = _quadrature(int(n), int(q))
+    a2 = alpha * alpha
+    f = np.exp(-tan2[texels] / a2) / (4.0 * np.pi * a2 * ch[texels])
+    coef = np.vstack([np.ones((1, len(texels))), moments])       # (6, T)
+    return f, (rows.T @ coef).T
+
+
 def _prepare(hb: HBSAB, min_weight: float, buffer: int = 0, weighting: str = "count",
              max_saturated: float = 0.02):
     if hb.n_buffers <= buffer:
@@ -220,7 +286,7 @@ def _prepare(hb: HBSAB, min_weight: float, buffer: int = 0, weighting: str = "co
 
 def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple | None = None,
              buffer: int = 0, q: int = DEFAULT_QUAD, weighting: str = "count",
-             max_saturated: float = 0.02) -> WardFit:
+             max_saturated: float = 0.02, emitter=None) -> WardFit:
     """Fit ``rho_d / pi + rho_s * Ward(alpha)`` to one HBSAB (paper §5.1, last step).
 
     Parameters
@@ -242,6 +308,11 @@ def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple
         Standard error model of a texel: ``"count"``: ``s^2 / W_t`` with ``s^2`` the buffer's pooled
         per-sample variance; ``"relative"``: ``(c^2 v_t^2 + (1e-3 v_max)^2) / W_t`` (multiplicative noise,
         ``c`` the median relative spread of a sample).
+    max_saturated : float
+        Texels where saturated samples carry more than this fraction of the weight are clipped.
+    emitter : None, "flat" or (k, theta, shift)
+        The emitter's intensity distribution: with it, clipped texels are modelled (censored mean,
+        module docstring) instead of left out.
 
     Returns
     -------
@@ -253,10 +324,34 @@ def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple
         Fewer than 3 usable texels, or no reflected IR at all.
     """
     with one_blas_thread():
-        return _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated)
+        return _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, emitter)
 
 
-def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated) -> WardFit:
+def _censored_setup(hb: HBSAB, min_weight: float, buffer: int, max_saturated: float, unit: float, s2_pool: float):
+    """All heavy texels (clipped ones included) for the censored fit, or None when nothing clips."""
+    d = hb.data[:, buffer].astype(np.float64)
+    W = d[CH_W]
+    heavy = W > max(float(min_weight), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = np.where(heavy, d[CH_SAT] / np.where(heavy, W, 1.0), 0.0)
+    if not np.any(heavy & (frac > max_saturated)):
+        return None
+    full = heavy & (frac >= 0.9)
+    if not full.any():
+        return None                                      # no texel shows the clip level itself
+    sel = np.flatnonzero(heavy)
+    Ws = W[sel]
+    v = d[CH_WV, sel] / Ws / unit
+    c = float(np.median(d[CH_WV][full] / W[full])) / unit
+    g = d[CH_WG, sel] / Ws
+    m = d[CH_M:CH_M + N_MOMENTS, sel] / Ws
+    sigma = np.sqrt(s2_pool / np.maximum(Ws, 1e-12))
+    if not (np.isfinite(v).all() and np.isfinite(g).all() and np.isfinite(m).all() and np.isfinite(c) and c > 0):
+        return None
+    return sel, v, g, m, sigma, c, int(np.count_nonzero(heavy & (frac > max_saturated)))
+
+
+def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, emitter=None) -> WardFit:
     if diffuse not in ("min", "fit"):
         raise EstimationError(f"Ward fit: diffuse must be 'min' or 'fit', got {diffuse!r}")
     if weighting not in ("count", "relative"):
@@ -315,8 +410,54 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated) 
     lo = [ALPHA_MIN, 0.0] + ([0.0] if free_d else [])
     hi = [ALPHA_MAX, np.inf] + ([np.inf] if free_d else [])
     x_scale = np.array([0.05, scale * 0.05] + ([scale * 0.05] if free_d else []))
-    res = least_squares(resid, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=x_scale,
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    cen = None
+    if emitter is not None:
+        # per-sample variance of the unclipped texels (sigma_t^2 W_t), in the fit's units
+        Wsel = hb.data[CH_W, buffer, sel].astype(np.float64)
+        s2_pool = float(np.median(sigma ** 2 * Wsel))
+        cen = _censored_setup(hb, min_weight, buffer, max_saturated, unit, s2_pool)
+    if cen is None:
+        res = least_squares(resid, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=x_scale,
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    else:
+        csel, cv, cg, cm, csig, clip, _ = cen
+        c_inv = 1.0 / csig
+
+        # texels with clipped samples: clipping averaged over the texel's quadrature nodes (the lobe
+        # varies a lot across a texel near its peak); the others: clipping of the texel mean
+        d_ = hb.data[:, buffer].astype(np.float64)
+        part = d_[CH_SAT, csel] > 0
+        ip = np.flatnonzero(part)
+
+        def cresid(x):
+            dd = x[2] if free_d else d0
+            pred = censored_mean(x[1] * cg * texel_lobe(x[0], n, csel, cm, q) + dd, clip, emitter)
+            if len(ip):
+                f, w = texel_nodes(x[0], n, csel[ip], cm[:, ip])
+                pred[ip] = np.sum(censored_mean(x[1] * cg[ip, None] * f + dd, clip, emitter) * w, axis=1)
+            return (pred - cv) * c_inv
+
+        # start: for each alpha of the grid, rho_s (and d) from the unclipped texels, scored censored
+        best = None
+        for a in _ALPHA_GRID:
+            L = lobe(a) * inv_s
+            if free_d:
+                sol, *_ = np.linalg.lstsq(np.stack([L, inv_s], axis=1), v * inv_s, rcond=None)
+                cand = [a, max(sol[0], 1e-12), max(sol[1], 0.0)]
+            else:
+                den = float(L @ L)
+                cand = [a, max(float(L @ ((v - d0) * inv_s)) / den, 1e-12) if den > 0 else 1e-12]
+            for f in (1.0, 0.3, 3.0):                       # the clipped texels may want a lower/higher peak
+                xx = np.array(cand, float)
+                xx[1] *= f
+                cost = float(np.sum(cresid(xx) ** 2))
+                if best is None or cost < best[0]:
+                    best = (cost, xx)
+        xc = best[1]
+        xc[0] = np.clip(xc[0], ALPHA_MIN, ALPHA_MAX)
+        res = least_squares(cresid, xc, jac="2-point", bounds=(lo, hi), method="trf", x_scale=x_scale,
+                            xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=400)
+        sel = csel
     x = res.x
     r = res.fun
     J = res.jac
@@ -343,7 +484,7 @@ class WardFitter:
 
     Parameters
     ----------
-    min_weight, diffuse, q, weighting, max_saturated
+    min_weight, diffuse, q, weighting, max_saturated, emitter
         As :func:`fit_ward`.
 
     Attributes
@@ -353,8 +494,9 @@ class WardFitter:
     """
 
     def __init__(self, min_weight: float = 1.0, diffuse: str = "fit", q: int = DEFAULT_QUAD,
-                 weighting: str = "count", max_saturated: float = 0.02):
+                 weighting: str = "count", max_saturated: float = 0.02, emitter=None):
         self.min_weight = min_weight
+        self.emitter = emitter
         self.diffuse = diffuse
         self.q = q
         self.weighting = weighting
@@ -370,7 +512,8 @@ class WardFitter:
         x0 = None
         if self.last is not None and not self.last.at_bound:
             x0 = (self.last.alpha, self.last.rho_s, self.last.diffuse)
-        kw = dict(buffer=buffer, q=self.q, weighting=self.weighting, max_saturated=self.max_saturated)
+        kw = dict(buffer=buffer, q=self.q, weighting=self.weighting, max_saturated=self.max_saturated,
+                  emitter=self.emitter)
         res = fit_ward(hb, self.min_weight, self.diffuse, x0=x0, **kw)
         if x0 is not None and res.at_bound:
             res = fit_ward(hb, self.min_weight, self.diffuse, x0=None, **kw)
