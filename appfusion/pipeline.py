@@ -154,7 +154,8 @@ class Snapshot:
 GUIDANCE = {
     "ir-calibration": "Cover the emitter for the dark frames, then hold a white sheet at 50-120 cm.",
     "environment": "Place the mirror ball inside the markers and orbit it slowly, keeping the circles in view.",
-    "geometry": "Replace the ball by the object and orbit it at 40-100 cm; watch the model fill in.",
+    "geometry": "Replace the ball by the object and orbit it at 40-100 cm, at several heights down to the "
+                "table (each side shows its IR highlight only from near its own height); watch the model fill in.",
     "ir": "Keep orbiting: the IR highlights are being fused into the material clusters.",
     "rgb": "Orbit once more with the colour camera; rho_d and rho_s converge as views accumulate.",
     "export": "Writing the mesh, textures and report.",
@@ -1004,5 +1005,9 @@ class _Geometry:
         res = self.gp.result(n_points=n_points)
         V = np.asarray(res.mesh.vertices, np.float32)
         F = np.asarray(res.mesh.triangles, np.int32)
-        poses = {int(i): p for i, p in zip(res.frame_indices, res.poses) if np.all(np.isfinite(p))}
+        # only frames tracked once the four circles had fixed the marker frame: the frames before it
+        # (e.g. the first two of the synthetic demo's geometry pass, three circles in view) came out
+        # 5-10 cm off after the final marker transform, and their IR samples only added wrong data
+        since = np.array([st.pose_marker is not None for st in res.states], bool)
+        poses = {int(i): p for i, p, ok in zip(res.frame_indices, res.poses, since) if ok and np.all(np.isfinite(p))}
         return V, F, res.points.astype(np.float32), res.normals.astype(np.float32), poses
