@@ -672,7 +672,10 @@ class ScanRunner:
             self._note(f"rgb: tracking lost in {lost} frames")
         r = self.rgb.result()
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
-                            "counts": np.asarray(r.counts)}
+                            "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s))}
+        if r.heldout_rss is not None:
+            self._note("rgb: model ladder (held-out RSS diffuse / Ward): " + "; ".join(
+                f"cluster {c} {m} ({a:.3g} / {b:.3g})" for c, (m, (a, b)) in enumerate(zip(r.model, r.heldout_rss))))
         self._save_npz("rgb", **self._rgb_result)
         self._mark_done("rgb", {"frames": used})
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
@@ -751,6 +754,10 @@ class ScanRunner:
             m = min(k, len(rgb["rho_s"]))
             rho_s[:m] = np.maximum(rgb["rho_s"][:m], 0)
             rho_d = np.clip(np.nan_to_num(rgb["rho_d"], nan=0.5), 0, None)
+        if rgb is not None and "model" in rgb:             # the RGB pass's held-out model ladder
+            for c, mm in enumerate(np.asarray(rgb["model"]).tolist()[:k]):
+                if mm == "diffuse":
+                    model[c] = "diffuse"
         model = [("ward" if (mm == "ward" and rho_s[c].max() > 0) else "diffuse") for c, mm in enumerate(model)]
         V, F = self.mesh if self.mesh is not None else (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
         info = {"timings": self.timings, "messages": self.messages, "config": self.config.to_json(),

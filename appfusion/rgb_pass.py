@@ -93,6 +93,12 @@ class RGBResult:
         ``sum S^2`` per cluster (the denominator of Eq. 8: how well rho_s is determined).
     notes : list of str
         Warnings (clusters without samples, ...).
+    model : list of str
+        Per cluster, the rung of the model ladder chosen by held-out error (``"lsq"`` estimator):
+        ``"diffuse"`` (rho_s = 0) or ``"ward"``; ``"ward"`` for every cluster with the percentile
+        estimator.
+    heldout_rss : (C, 2) float64
+        Held-out residual sum of squares per cluster of the diffuse-only and of the Ward model.
     """
 
     rho_d: np.ndarray
@@ -102,6 +108,8 @@ class RGBResult:
     cluster_samples: np.ndarray
     s2: np.ndarray
     notes: list = field(default_factory=list)
+    model: list = field(default_factory=list)
+    heldout_rss: np.ndarray | None = None
 
 
 def histogram_percentile(hist: np.ndarray, lo: float, width: float, pct: float,
@@ -192,6 +200,10 @@ class RGBPass:
         samples scatter by ~5 %); the least-squares mean is not.
     min_lsq_samples : int
         Samples a point needs before its least-squares rho_d replaces the percentile (default 3).
+    ladder_margin : float
+        Model ladder (``"lsq"``): a cluster keeps its Ward lobe only if that lowers the held-out
+        residual sum of squares by more than this fraction (default 0.2 %); otherwise it is diffuse
+        (rho_s = 0). See :meth:`_lsq`.
     dark, saturated : float
         Linear-RGB thresholds of the skipped samples.
     min_cos : float
@@ -213,7 +225,7 @@ class RGBPass:
 
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
                  bins: int = 64, ratio_range: tuple[float, float] = (1 / 64, 2.0), percentile: float = 10.0,
-                 estimator: str = "lsq", min_lsq_samples: int = 3,
+                 estimator: str = "lsq", min_lsq_samples: int = 3, ladder_margin: float = 0.002,
                  dark: float = 0.01, saturated: float = 0.98, min_cos: float = math.cos(math.radians(75)),
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
                  depth_tol: float = 0.01, table_kwargs: dict | None = None):
@@ -279,6 +291,9 @@ class RGBPass:
         self.log_width = (math.log(ratio_range[1]) - self.log_lo) / self.bins
         self.percentile = float(percentile)
         self.estimator = estimator
+        self.ladder_margin = float(ladder_margin)
+        self.model: list = ["ward"] * len(al)
+        self.heldout_rss = None
         self.min_lsq_samples = max(1, int(min_lsq_samples))
         self.dark, self.saturated, self.min_cos = float(dark), float(saturated), float(min_cos)
         self.max_dist = max_dist
@@ -294,6 +309,7 @@ class RGBPass:
         self.sum_sd = np.zeros((n, 3))
         self.sum_s = np.zeros((n, 3))     # sum S and sum L: with D fixed per point, these and the sums
         self.sum_l = np.zeros((n, 3))     # above are every moment the least squares of Eq. 5 needs
+        self.sum_l2 = np.zeros((n, 3))    # sum L^2: residuals of the model ladder's held-out test
         self.frames = 0
         self.stats = {"samples": 0, "skipped_dark": 0, "skipped_saturated": 0, "skipped_grazing": 0,
                       "skipped_unlit": 0, "register_s": 0.0, "update_s": 0.0}
@@ -301,7 +317,7 @@ class RGBPass:
     @property
     def nbytes(self) -> int:
         """Bytes of the per-point state (histograms and sums), excluding the tables."""
-        return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + 5 * self.sum_s2.nbytes
+        return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + 6 * self.sum_s2.nbytes
                    + self.D.nbytes)
 
     # -- per-frame --------------------------------------------------------------------------
@@ -531,6 +547,7 @@ class RGBPass:
         self.sum_sd[p] += S * Dp
         self.sum_s[p] += S
         self.sum_l[p] += L
+        self.sum_l2[p] += L * L
 
     # -- results ------------------------------------------------------------------------------
     def rho_d(self) -> tuple[np.ndarray, np.ndarray]:
@@ -563,6 +580,26 @@ class RGBPass:
         scale = np.maximum(den.max(), 1e-300)
         ok = den > 1e-12 * scale
         rho_s = np.maximum(np.where(ok, num / np.where(ok, den, 1.0), 0.0), 0.0)
+        # model ladder (issue #11, after seed 002): diffuse only, or diffuse + Ward, per cluster, chosen
+        # by held-out error. The points are split in two halves; rho_s fitted on one half is scored on
+        # the other with each point's rho_d refitted to its own samples, whose residual is then the
+        # within-point variance  RSS_p(rho_s) = V_LL - 2 rho_s C_SL + rho_s^2 V_SS  (rho_s = 0: diffuse).
+        vll = np.where(use[:, None], self.sum_l2 - self.sum_l * self.sum_l / nn, 0.0)
+        half = (np.arange(len(lab)) % 2).astype(bool)
+        rss = np.zeros((C, 2))
+        for h in (False, True):
+            fit_m, test_m = (half == h), (half != h)
+            nu = np.stack([np.bincount(lab[fit_m], weights=cov[fit_m, c], minlength=C) for c in range(3)], 1)
+            de = np.stack([np.bincount(lab[fit_m], weights=np.maximum(var[fit_m, c], 0.0), minlength=C)
+                           for c in range(3)], 1)
+            rs_h = np.maximum(np.where(de > 0, nu / np.where(de > 0, de, 1.0), 0.0), 0.0)
+            r_w = vll - 2 * rs_h[lab] * cov + rs_h[lab] ** 2 * var
+            rss[:, 0] += np.bincount(lab[test_m], weights=vll[test_m].sum(1), minlength=C)
+            rss[:, 1] += np.bincount(lab[test_m], weights=r_w[test_m].sum(1), minlength=C)
+        self.model = ["ward" if (ok[c].any() and rss[c, 1] < (1 - self.ladder_margin) * rss[c, 0]) else "diffuse"
+                      for c in range(C)]
+        self.heldout_rss = rss
+        rho_s = np.where(np.array([m == "ward" for m in self.model])[:, None], rho_s, 0.0)
         D = np.maximum(self.D.astype(np.float64), 1e-12)
         rd = (self.sum_l - rho_s[lab] * self.sum_s) / nn / D
         rd = np.where(use[:, None], np.maximum(rd, 0.0), rd_pct)
@@ -600,5 +637,6 @@ class RGBPass:
                 m = (lab == c) & observed
                 out[(lab == c) & ~observed] = np.median(rd[m], axis=0) if m.any() else 0.0
         r = self._rank                                        # back to the caller's point order
+        model = list(self.model) if self.estimator == "lsq" else ["ward"] * C
         return RGBResult(out[r].astype(np.float32), rho_s.astype(np.float32), counts[r], observed[r], csamp,
-                         den, notes)
+                         den, notes, model=model, heldout_rss=self.heldout_rss)

@@ -128,6 +128,31 @@ def test_lsq_estimator_equals_the_stored_sample_least_squares(sphere_run):
         np.testing.assert_allclose(res.rho_d[seen, ch], x[seen], rtol=2e-3, atol=1e-4)
 
 
+def test_model_ladder_picks_diffuse_for_a_matte_cluster_and_ward_for_a_glossy_one(sphere_run):
+    """Held-out choice per cluster (issue #11's model ladder): a cluster without specular reflection is
+    fitted as diffuse (rho_s exactly 0, no spurious lobe), a glossy one keeps its Ward lobe."""
+    sc, poses, _, rp0, _ = sphere_run
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables)
+    rng = np.random.default_rng(9)
+    D0 = rp0.tables.D(sc.normals).astype(np.float64)
+    rho_s = np.array([[0.0, 0.0, 0.0], [0.3, 0.3, 0.3]])        # cluster 0 matte, cluster 1 glossy
+    for T in poses:
+        C = T[:3, 3]
+        wo = C - sc.positions
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
+        S0 = rp0.tables.S(sc.normals[vis], wo[vis], sc.alphas[sc.labels[vis]]).astype(np.float64)
+        L = (D0[vis] * sc.rho_d[vis] + S0 * rho_s[sc.labels[vis]]) * rng.normal(1, 0.03, (len(vis), 3))
+        ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)
+        rp.add_samples(vis[ok], L[ok], C)
+    res = rp.result()
+    assert res.model == ["diffuse", "ward"], (res.model, res.heldout_rss)
+    assert (res.rho_s[0] == 0).all() and abs(res.rho_s[1] / 0.3 - 1).max() < 0.05
+    assert res.heldout_rss.shape == (2, 2) and res.heldout_rss[1, 1] < res.heldout_rss[1, 0]
+    rel = np.abs(res.rho_d[res.observed] - sc.rho_d[res.observed]) / sc.rho_d[res.observed]
+    assert np.median(rel) < 0.02
+
+
 def test_repeated_points_in_one_call_equal_separate_calls(sphere_run):
     sc = sphere_run[0]
     C = np.array([0.3, 0.2, 0.4])

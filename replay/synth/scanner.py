@@ -644,15 +644,21 @@ def render_references(obj: ObjectModel, env: envmaps.Environment, folder: Path, 
     return {"folder": "references", "views": [v["name"] for v in views]}
 
 
+#: bumped whenever the scanner's output for the demo changes, so that a cached demo is rendered anew
+#: (2: the IR object pass orbits down to 5 degrees)
+DEMO_VERSION = 2
+
+
 def demo_session(cache_dir: str | os.PathLike, show_progress: bool = True) -> Path:
     """The bundled demo session (scene ``two-material``, 640 x 480, Kinect v1, ``DEMO_FRAMES`` per pass),
     generated once into ``cache_dir/synth-demo-two-material`` and reused afterwards."""
     cache_dir = Path(cache_dir)
     path = cache_dir / "synth-demo-two-material"
     done = path / "truth" / "scene.json"
-    if done.exists():
+    stamp = path / "demo-version.txt"
+    if done.exists() and stamp.exists() and stamp.read_text().strip() == str(DEMO_VERSION):
         return path
-    if path.exists():
+    if path.exists() and not done.exists():
         import shutil
 
         shutil.rmtree(path)  # an interrupted earlier generation
@@ -664,5 +670,10 @@ def demo_session(cache_dir: str | os.PathLike, show_progress: bool = True) -> Pa
         shutil.rmtree(tmp)
     render_session("two-material", tmp, frames=DEMO_FRAMES, size=(640, 480), seed=0, device="kinect1",
                    show_progress=show_progress, cache_dir=cache_dir / "lighting")
+    (tmp / "demo-version.txt").write_text(f"{DEMO_VERSION}\n")
+    if path.exists():                      # an older version of the demo
+        import shutil
+
+        shutil.rmtree(path)
     os.replace(tmp, path)
     return path
