@@ -480,6 +480,9 @@ class BRDFCut:
         The Ward fit of a cluster uses its interior leaves (a leaf whose points and ``interior_k``
         nearest leaves all carry the cluster's label) when they hold at least
         ``interior_min_fraction`` of its weight; boundary leaves mix two materials' lobes.
+    merge_alpha_rel, merge_rho_rel : float
+        Automatic k: clusters whose fitted alpha and rho_s agree within these relative tolerances are
+        merged (:meth:`_merge_alike`).
     emitter : None, "flat" or (k, theta, shift)
         The emitter's intensity distribution (IR profile, §6): the Ward fits then model clipped
         highlight texels instead of leaving them out (:func:`appfusion.ward_fit.fit_ward`).
@@ -500,7 +503,8 @@ class BRDFCut:
                  noise_ratio: float = 1.0, split_gain: float = 1.25, assign_margin: float = 4.0,
                  fit_min_weight: float = 1.0, diffuse: str = "fit", dtype=np.float32, seed: int = 0,
                  size: float | None = None, leaf_margin: float | None = 9.0, interior_k: int = 6,
-                 interior_min_fraction: float = 0.3, emitter=None):
+                 interior_min_fraction: float = 0.3, emitter=None, merge_alpha_rel: float = 0.25,
+                 merge_rho_rel: float = 0.35):
         P, Nn = _check_points(positions, normals)
         self.positions, self.normals = P, Nn
         self.tree = build_tree(P, Nn, min_leaf=min_leaf, size=size)
@@ -528,6 +532,8 @@ class BRDFCut:
         self.fit_min_weight = float(fit_min_weight)
         self.diffuse = diffuse
         self.emitter = emitter
+        self.merge_alpha_rel = float(merge_alpha_rel)
+        self.merge_rho_rel = float(merge_rho_rel)
         self.seed = int(seed)
         self.overrides = np.full(len(P), -1, np.int32)
         self._prev_labels: np.ndarray | None = None
@@ -705,9 +711,49 @@ class BRDFCut:
             labels[painted] = self.overrides[painted]
         k_out = int(max(k_eff, labels.max() + 1 if len(labels) else 1))
         clusters = self._clusters(labels, k_out, fit)
+        if k is None and fit and not painted.any():
+            labels, clusters, merged = self._merge_alike(labels, clusters)
+            if merged:
+                k_out = len(clusters)
+                notes.append(f"automatic k: {merged} cluster(s) merged into others with the same fitted lobe")
         self._prev_labels = labels.copy()
         return CutResult(labels=labels, clusters=clusters, k=k_out, k_auto=k is None, cut_nodes=nodes,
                          cut_reliable=rel, chi2_by_k=chi2_by_k, notes=notes)
+
+    def _merge_alike(self, labels, clusters):
+        """Automatic k, second check: k-means splits noisy real data (texture, normal noise) beyond
+        what the chi-square expects, so clusters whose fitted Ward lobes agree -- alpha within
+        ``merge_alpha_rel`` relative (or 3 combined sigma) and rho_s within ``merge_rho_rel`` (or 3
+        combined sigma) -- are one
+        material and are merged (largest first), then refitted. Returns labels, clusters, merges."""
+        merged = 0
+        while len(clusters) > 1:
+            fits = [(c.label, c.fit) for c in clusters if c.fit is not None]
+            pair = None
+            for i in range(len(fits)):
+                for j in range(i + 1, len(fits)):
+                    (a, fa), (b, fb) = fits[i], fits[j]
+                    da = abs(fa.alpha - fb.alpha)
+                    tol = max(self.merge_alpha_rel * 0.5 * (fa.alpha + fb.alpha),
+                              3.0 * float(np.hypot(fa.alpha_sigma, fb.alpha_sigma)))
+                    ds = abs(fa.rho_s - fb.rho_s)
+                    tol_s = max(self.merge_rho_rel * 0.5 * (fa.rho_s + fb.rho_s),
+                                3.0 * float(np.hypot(fa.rho_s_sigma, fb.rho_s_sigma)))
+                    if da <= tol and ds <= tol_s:
+                        pair = (a, b)
+                        break
+                if pair:
+                    break
+            if pair is None:
+                break
+            a, b = pair
+            labels = np.where(labels == b, a, labels)
+            labels = np.where(labels > b, labels - 1, labels).astype(np.int32)
+            self._fitters = {}
+            self._prev_labels = None
+            clusters = self._clusters(labels, len(clusters) - 1, True)
+            merged += 1
+        return labels, clusters, merged
 
     def _refine_leaves(self, leaf_label, cols, C, MC):
         """Move a leaf to another centre when its own HBSAB is closer to it by ``leaf_margin`` in
