@@ -533,6 +533,7 @@ class BRDFCut:
         self.diffuse = diffuse
         self.emitter = emitter
         self.merge_alpha_rel = float(merge_alpha_rel)
+        self.clip_sum, self.clip_n = 0.0, 0        # saturated samples' values (the sensor's clip level)
         self.merge_rho_rel = float(merge_rho_rel)
         self.seed = int(seed)
         self.overrides = np.full(len(P), -1, np.int32)
@@ -733,6 +734,8 @@ class BRDFCut:
             for i in range(len(fits)):
                 for j in range(i + 1, len(fits)):
                     (a, fa), (b, fb) = fits[i], fits[j]
+                    if fa.at_bound or fb.at_bound:              # no lobe measured: nothing to compare
+                        continue
                     da = abs(fa.alpha - fb.alpha)
                     tol = max(self.merge_alpha_rel * 0.5 * (fa.alpha + fb.alpha),
                               3.0 * float(np.hypot(fa.alpha_sigma, fb.alpha_sigma)))
@@ -844,6 +847,7 @@ class BRDFCut:
                     use = hb
                 fitter = self._fitters.setdefault(c, WardFitter(self.fit_min_weight, self.diffuse,
                                                                          emitter=self.emitter))
+                fitter.clip = self.clip_sum / self.clip_n if self.clip_n else None
                 try:
                     wf = fitter.fit(use)
                     status = "fitted"

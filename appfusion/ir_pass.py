@@ -228,6 +228,9 @@ class IRPass:
         s = _channels(hlx, hly, ci + co, ci, co, value, w, self.cut.n)
         if n_sat:
             s.channels[CH_SAT] = w * sat
+            # running mean of the clip level in reflectance units (the censored Ward fit's c)
+            self.cut.clip_sum += float(np.sum(value[sat], dtype=np.float64))
+            self.cut.clip_n += n_sat
         self.cut.leaves.add(self._leaf_key[pidx] + s.texel, s.channels)
         self._count(m, n_sat, n_drop, t0)
         return m

@@ -286,7 +286,7 @@ def _prepare(hb: HBSAB, min_weight: float, buffer: int = 0, weighting: str = "co
 
 def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple | None = None,
              buffer: int = 0, q: int = DEFAULT_QUAD, weighting: str = "count",
-             max_saturated: float = 0.02, emitter=None) -> WardFit:
+             max_saturated: float = 0.02, emitter=None, clip: float | None = None) -> WardFit:
     """Fit ``rho_d / pi + rho_s * Ward(alpha)`` to one HBSAB (paper §5.1, last step).
 
     Parameters
@@ -313,6 +313,9 @@ def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple
     emitter : None, "flat" or (k, theta, shift)
         The emitter's intensity distribution: with it, clipped texels are modelled (censored mean,
         module docstring) instead of left out.
+    clip : float, optional
+        The clip level in the buffer's units (mean value of the saturated samples, kept by the IR
+        pass); default: the median value of the texels whose samples are >= 90 % saturated.
 
     Returns
     -------
@@ -324,10 +327,11 @@ def fit_ward(hb: HBSAB, min_weight: float = 1.0, diffuse: str = "fit", x0: tuple
         Fewer than 3 usable texels, or no reflected IR at all.
     """
     with one_blas_thread():
-        return _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, emitter)
+        return _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, emitter, clip)
 
 
-def _censored_setup(hb: HBSAB, min_weight: float, buffer: int, max_saturated: float, unit: float, s2_pool: float):
+def _censored_setup(hb: HBSAB, min_weight: float, buffer: int, max_saturated: float, unit: float, s2_pool: float,
+                    clip: float | None = None):
     """All heavy texels (clipped ones included) for the censored fit, or None when nothing clips."""
     d = hb.data[:, buffer].astype(np.float64)
     W = d[CH_W]
@@ -337,12 +341,12 @@ def _censored_setup(hb: HBSAB, min_weight: float, buffer: int, max_saturated: fl
     if not np.any(heavy & (frac > max_saturated)):
         return None
     full = heavy & (frac >= 0.9)
-    if not full.any():
+    if clip is None and not full.any():
         return None                                      # no texel shows the clip level itself
     sel = np.flatnonzero(heavy)
     Ws = W[sel]
     v = d[CH_WV, sel] / Ws / unit
-    c = float(np.median(d[CH_WV][full] / W[full])) / unit
+    c = (float(clip) if clip is not None else float(np.median(d[CH_WV][full] / W[full]))) / unit
     g = d[CH_WG, sel] / Ws
     m = d[CH_M:CH_M + N_MOMENTS, sel] / Ws
     sigma = np.sqrt(s2_pool / np.maximum(Ws, 1e-12))
@@ -351,7 +355,7 @@ def _censored_setup(hb: HBSAB, min_weight: float, buffer: int, max_saturated: fl
     return sel, v, g, m, sigma, c, int(np.count_nonzero(heavy & (frac > max_saturated)))
 
 
-def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, emitter=None) -> WardFit:
+def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, emitter=None, clip=None) -> WardFit:
     if diffuse not in ("min", "fit"):
         raise EstimationError(f"Ward fit: diffuse must be 'min' or 'fit', got {diffuse!r}")
     if weighting not in ("count", "relative"):
@@ -415,7 +419,7 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
         # per-sample variance of the unclipped texels (sigma_t^2 W_t), in the fit's units
         Wsel = hb.data[CH_W, buffer, sel].astype(np.float64)
         s2_pool = float(np.median(sigma ** 2 * Wsel))
-        cen = _censored_setup(hb, min_weight, buffer, max_saturated, unit, s2_pool)
+        cen = _censored_setup(hb, min_weight, buffer, max_saturated, unit, s2_pool, clip)
     if cen is None:
         res = least_squares(resid, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=x_scale,
                             xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
@@ -513,7 +517,7 @@ class WardFitter:
         if self.last is not None and not self.last.at_bound:
             x0 = (self.last.alpha, self.last.rho_s, self.last.diffuse)
         kw = dict(buffer=buffer, q=self.q, weighting=self.weighting, max_saturated=self.max_saturated,
-                  emitter=self.emitter)
+                  emitter=self.emitter, clip=self.clip)
         res = fit_ward(hb, self.min_weight, self.diffuse, x0=x0, **kw)
         if x0 is not None and res.at_bound:
             res = fit_ward(hb, self.min_weight, self.diffuse, x0=None, **kw)
