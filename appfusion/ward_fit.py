@@ -501,6 +501,7 @@ class WardFitter:
                  weighting: str = "count", max_saturated: float = 0.02, emitter=None):
         self.min_weight = min_weight
         self.emitter = emitter
+        self.clip: float | None = None     # clip level (see fit_ward), set by the owner as data arrive
         self.diffuse = diffuse
         self.q = q
         self.weighting = weighting
