@@ -1,0 +1,57 @@
+"""Camera poses from the printed circles for a separate RGB pass (appfusion.pipeline._MarkerPose)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from appfusion.frame import invert_pose
+from appfusion.markers import MarkerDetection
+from appfusion.pipeline import _MarkerPose
+
+META = {"extra": {"markers": {"radius_m": 0.025, "key_radius_m": 0.035, "side_m": 0.3, "layout": "square"}}}
+
+
+def _pose(seed):
+    """A camera above the plane looking at the centre (camera to marker frame)."""
+    rng = np.random.default_rng(seed)
+    az, el = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(20, 70))
+    eye = 0.7 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], 1)
+    T[:3, 3] = eye
+    return T
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_any_three_circles_give_the_pose(seed):
+    mp = _MarkerPose(META)
+    T = _pose(seed)
+    Ti = invert_pose(T)
+    layout_cam = mp.layout @ Ti[:3, :3].T + Ti[:3, 3]
+    normal = Ti[:3, :3] @ np.array([0, 0, 1.0])
+    radii = np.array([0.035, 0.025, 0.025, 0.025])
+    rng = np.random.default_rng(seed)
+    for keep in itertools.combinations(range(4), 3):
+        keep = list(rng.permutation(keep))              # detection order is arbitrary
+        det = MarkerDetection(layout_cam[keep] + rng.normal(0, 3e-4, (3, 3)), radii[keep], np.zeros((3, 2)),
+                              normal, 0.0, False, "rgb")
+        idx = mp._three(det)
+        assert idx is not None and list(idx) == keep
+        tr = mp.track_detection(det)
+        assert tr.state == "ok" and np.linalg.norm(tr.pose[:3, 3] - T[:3, 3]) < 3e-3
+
+
+def test_three_circles_not_forming_the_layout_are_refused():
+    mp = _MarkerPose(META)
+    pts = np.array([[0.0, 0, 0.7], [0.3, 0, 0.7], [0.0, 0.2, 0.7]])   # a 0.3 x 0.2 right triangle
+    det = MarkerDetection(pts, np.full(3, 0.025), np.zeros((3, 2)), np.array([0, 0, -1.0]), 0.7, False, "rgb")
+    assert mp._three(det) is None
+    two = MarkerDetection(pts[:2], np.full(2, 0.025), np.zeros((2, 2)), np.array([0, 0, -1.0]), 0.7, False, "rgb")
+    assert mp.track_detection(two).pose is None
