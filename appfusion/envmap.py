@@ -437,7 +437,7 @@ class EnvMapAccumulator:
     """
 
     def __init__(self, n: int = 128, rho_mirror: float | np.ndarray = 1.0, min_cos: float = 0.1,
-                 min_weight: float = 0.0, exclude_viewer_deg: float = 0.0):
+                 min_weight: float = 0.0, exclude_viewer_deg: float = 0.0, pixel_sigma: float | None = None):
         n = int(n)
         if n < 2:
             raise AppFusionError(f"environment map side must be at least 2, got {n}")
@@ -453,6 +453,9 @@ class EnvMapAccumulator:
             raise AppFusionError(f"exclude_viewer_deg must be in [0, 90), got {exclude_viewer_deg}")
         self.exclude_viewer_deg = float(exclude_viewer_deg)
         self.min_weight = float(min_weight)
+        if pixel_sigma is not None and not (np.isfinite(pixel_sigma) and pixel_sigma > 0):
+            raise AppFusionError(f"pixel_sigma must be a positive number of pixels or None, got {pixel_sigma}")
+        self.pixel_sigma = None if pixel_sigma is None else float(pixel_sigma)
         self._w = np.zeros(2 * n * n)              # summed weights
         self._mean = np.zeros((2 * n * n, 3))      # weighted mean radiance
         self.n_samples = 0
@@ -593,6 +596,11 @@ class EnvMapAccumulator:
         off = (np.arange(s) + 0.5) / s - 0.5
         oy, ox = np.meshgrid(off, off, indexing="ij")
         ox, oy = ox.reshape(1, -1), oy.reshape(1, -1)
+        if self.pixel_sigma is None:
+            kern = np.full(s * s, 1.0 / (s * s))
+        else:
+            kern = np.exp(-(ox * ox + oy * oy).reshape(-1) / (2.0 * self.pixel_sigma ** 2))
+            kern /= kern.sum()
         to_cam = -cc / dist                              # camera-frame direction from the ball to the camera
         cos_viewer = np.cos(np.radians(self.exclude_viewer_deg))
         idx: list[np.ndarray] = []
@@ -604,27 +612,28 @@ class EnvMapAccumulator:
             su = (px[:, None] + ox).reshape(-1)
             sv = (py[:, None] + oy).reshape(-1)
             src = np.repeat(np.arange(len(pv)), s * s)
+            ksub = np.tile(kern, len(pv))
             d = _pixel_rays(intrinsics, su, sv)
             # Analytic ray-sphere intersection |t d - cc| = R, nearest root t = b - sqrt(b^2 - |cc|^2 + R^2).
             b = d @ cc
             disc = b * b - (dist * dist - radius * radius)
             hit = disc > 0
-            d, b, disc, src = d[hit], b[hit], disc[hit], src[hit]
+            d, b, disc, src, ksub = d[hit], b[hit], disc[hit], src[hit], ksub[hit]
             t = b - np.sqrt(disc)
             front = t > 0
-            d, t, src = d[front], t[front], src[front]
+            d, t, src, ksub = d[front], t[front], src[front], ksub[front]
             nrm = (t[:, None] * d - cc) / radius         # outward unit normal
             cos_o = -(d * nrm).sum(axis=1)               # w_o . n with w_o = -d
             ok = cos_o >= max(self.min_cos, 1e-6)
             if not ok.any():
                 continue
-            d, nrm, cos_o, src = d[ok], nrm[ok], cos_o[ok], src[ok]
+            d, nrm, cos_o, src, ksub = d[ok], nrm[ok], cos_o[ok], src[ok], ksub[ok]
             refl = d + 2.0 * cos_o[:, None] * nrm         # r = d - 2 (d . n) n
             if self.exclude_viewer_deg > 0:
                 ok = refl @ to_cam < cos_viewer
-                refl, cos_o, src = refl[ok], cos_o[ok], src[ok]
+                refl, cos_o, src, ksub = refl[ok], cos_o[ok], src[ok], ksub[ok]
             refl_w = refl @ Rw.T                          # into the world (marker) frame
-            w = cos_o / (s * s)
+            w = cos_o * ksub
             idx.append(octa.sphere_texel_index(refl_w, self.n))
             wts.append(w)
             wv.append(pv[src] * (w[:, None] / self.rho_mirror))

@@ -24,7 +24,8 @@ import numpy as np
 from .envmap import EnvMap, EnvMapAccumulator
 from .errors import AppFusionError, EstimationError, PassMissingError
 from .frame import Frame, Intrinsics, invert_pose
-from .sphere_fit import PointReservoir, SphereFit, fit_sphere, points_from_depth, refine_center
+from .sphere_fit import (PointReservoir, SphereFit, ball_cues_from_depth, fit_mirror_ball, fit_sphere, locate_ball,
+                         points_from_depth, refine_center)
 
 
 class LightingPass:
@@ -58,17 +59,41 @@ class LightingPass:
         Skip reflections within this angle of the camera (the user's reflection); see
         :class:`~appfusion.envmap.EnvMapAccumulator`. 0 = the paper's plain weighted mean.
     per_frame_center : bool
-        In :meth:`add_frame`, re-locate the ball relative to the camera from the frame's own depth
-        (:func:`~appfusion.sphere_fit.refine_center`, radius fixed) before mapping its RGB. This makes the
-        map insensitive to tracking error (a 2 mm / 0.3 degree pose error otherwise smears edges by several
-        degrees); needs depth with the RGB (Kinect v1 depth+RGB, Azure Kinect). A frame whose ball cannot
-        be located (too few depth points near it) is skipped and counted in ``n_skipped_frames``.
+        In :meth:`add_frame`, re-locate the ball relative to the camera from the frame's own depth before
+        mapping its RGB. This makes the map insensitive to tracking error (a 2 mm / 0.3 degree pose error
+        otherwise smears edges by several degrees); needs depth with the RGB (Kinect v1 depth+RGB, Azure
+        Kinect). With the mirror cues (``emitter`` given) the ball is found from its silhouette in the
+        depth image (:func:`~appfusion.sphere_fit.locate_ball`); a frame where it cannot be found keeps the
+        fitted centre and is counted in ``n_unlocated_frames``. Without them the frame's depth points are
+        re-fitted (:func:`~appfusion.sphere_fit.refine_center`, radius fixed) and a frame whose ball cannot
+        be located is skipped and counted in ``n_skipped_frames``.
+    emitter : (3,) array, optional
+        Position of the depth camera's emitter in the depth camera's frame (metres; session meta
+        ``emitter_position_m``, Kinect v1 ``[0.075, 0, 0]``). Enables the mirror cues of
+        :func:`~appfusion.sphere_fit.ball_cues_from_depth`: specular-spot points with known normals and
+        silhouette rays, fitted by :func:`~appfusion.sphere_fit.fit_mirror_ball`. A mirror gives depth
+        only at its specular spot (plus wrong returns behind it), so a plain sphere fit to its depth
+        points comes out too small (measured: 30.2 mm for a 35 mm ball on the synthetic Kinect).
+    mirror_cues : bool or "auto"
+        Use the mirror cues (needs ``emitter`` and ``box``). ``"auto"``: when available, falling back to
+        the plain sphere fit if the mirror fit fails (noted in ``fit_notes``); ``False``: plain fit only.
+    on_plane : bool or "auto"
+        Mirror fit: constrain the ball to rest on the support plane ``z = plane_z`` (see
+        :func:`~appfusion.sphere_fit.fit_mirror_ball`; ``"auto"`` when the unconstrained fit agrees).
+    plane_z : float
+        Height of the support plane in the world frame (0 in the marker frame).
+    mirror_kwargs : dict, optional
+        Extra arguments of :func:`~appfusion.sphere_fit.fit_mirror_ball`.
+    pixel_sigma : float, optional
+        Pixel kernel of the accumulation (see :class:`~appfusion.envmap.EnvMapAccumulator`).
     """
 
     def __init__(self, n: int = 128, radius: float | None = None, box: Any = None, rho_mirror: Any = 1.0,
                  min_cos: float = 0.1, supersample: int | str = "auto", depth_stride: int = 2,
                  max_points: int = 200_000, max_pending: int = 32, fit_kwargs: dict[str, Any] | None = None,
-                 exclude_viewer_deg: float = 0.0, per_frame_center: bool = False):
+                 exclude_viewer_deg: float = 0.0, per_frame_center: bool = False, emitter: Any = None,
+                 mirror_cues: bool | str = "auto", on_plane: bool | str = "auto", plane_z: float = 0.0,
+                 mirror_kwargs: dict[str, Any] | None = None, pixel_sigma: float | None = None):
         self.radius = None if radius is None else float(radius)
         self.box = box
         self.supersample = supersample
@@ -76,14 +101,32 @@ class LightingPass:
         self.max_pending = int(max_pending)
         self.fit_kwargs = dict(fit_kwargs or {})
         self.acc = EnvMapAccumulator(n, rho_mirror=rho_mirror, min_cos=min_cos,
-                                     exclude_viewer_deg=exclude_viewer_deg)
+                                     exclude_viewer_deg=exclude_viewer_deg, pixel_sigma=pixel_sigma)
         self.per_frame_center = bool(per_frame_center)
+        if mirror_cues not in (True, False, "auto"):
+            raise AppFusionError(f"lighting pass: mirror_cues must be True, False or 'auto', got {mirror_cues!r}")
+        if emitter is not None:
+            emitter = np.asarray(emitter, dtype=np.float64).reshape(-1)
+            if emitter.shape != (3,) or not np.isfinite(emitter).all():
+                raise AppFusionError(f"lighting pass: emitter position must be 3 finite numbers (metres), got {emitter}")
+        if mirror_cues is True and emitter is None:
+            raise AppFusionError("lighting pass: mirror_cues=True needs the emitter position (session meta "
+                                 "emitter_position_m)")
+        self.emitter = emitter
+        self.mirror_cues = mirror_cues
+        self.on_plane = on_plane
+        self.plane_z = float(plane_z)
+        self.mirror_kwargs = dict(mirror_kwargs or {})
+        self.spots = PointReservoir(max_points, seed=1, dim=6)
+        self.rays = PointReservoir(max_points, seed=2, dim=7)
+        self.fit_notes: list[str] = []
         self.center_shifts_m: list[float] = []   # per-frame centre corrections applied (metres)
         self.points = PointReservoir(max_points)
         self.sphere: SphereFit | None = None
         self.n_depth_frames = 0
         self.n_rgb_frames = 0
         self.n_skipped_frames = 0     # RGB frames skipped because per-frame centring found no ball
+        self.n_unlocated_frames = 0   # RGB frames mapped with the fitted centre (silhouette not found)
         self._pending: list[tuple[np.ndarray, Intrinsics, np.ndarray, np.ndarray | None]] = []
         self._last_depth: np.ndarray | None = None
 
@@ -102,25 +145,49 @@ class LightingPass:
         box : optional
             Overrides the pass's object box for this frame.
         """
-        pts = points_from_depth(depth, intrinsics, pose, box if box is not None else self.box, self.depth_stride)
+        box = box if box is not None else self.box
+        pts = points_from_depth(depth, intrinsics, pose, box, self.depth_stride)
         self.points.add(pts)
+        if self._cues_possible(box):
+            cues = ball_cues_from_depth(depth, intrinsics, pose, box, self.emitter)
+            self.spots.add(cues.spots)
+            self.rays.add(cues.rays)
         self.n_depth_frames += 1
         self._last_depth = depth        # add_frame does not add the same image twice
         return len(pts)
 
+    def _cues_possible(self, box: Any = None) -> bool:
+        return self.mirror_cues is not False and self.emitter is not None and (box if box is not None else self.box) is not None
+
     def fit(self) -> SphereFit:
-        """Fit the sphere to the points collected so far (paper §4.3) and flush pending RGB frames.
+        """Fit the sphere to the depth collected so far (paper §4.3) and flush pending RGB frames.
+
+        With the mirror cues (see the class parameters) :func:`~appfusion.sphere_fit.fit_mirror_ball`;
+        else, or when that fails with ``mirror_cues="auto"``, the plain robust sphere fit of the depth
+        points (:func:`~appfusion.sphere_fit.fit_sphere`).
 
         Raises
         ------
         EstimationError
             No points, or a degenerate set (see :func:`appfusion.sphere_fit.fit_sphere`).
         """
-        if len(self.points) == 0:
-            raise EstimationError("lighting pass: no depth points of the mirror ball to fit a sphere to "
-                                  f"({self.n_depth_frames} depth frames; is the object box right?)")
-        kw = {"where": "lighting pass sphere fit", **self.fit_kwargs}
-        self.sphere = fit_sphere(self.points.points, radius=self.radius, **kw)
+        sphere = None
+        if self._cues_possible() and (len(self.spots) or len(self.rays)):
+            kw = {"where": "lighting pass mirror-ball fit", "on_plane": self.on_plane, "plane_z": self.plane_z,
+                  **self.mirror_kwargs}
+            try:
+                sphere = fit_mirror_ball(self.spots.points, self.rays.points, radius=self.radius, **kw)
+            except EstimationError as e:
+                if self.mirror_cues is True:
+                    raise
+                self.fit_notes.append(f"mirror-ball fit failed ({e}); plain sphere fit of the depth points used")
+        if sphere is None:
+            if len(self.points) == 0:
+                raise EstimationError("lighting pass: no depth points of the mirror ball to fit a sphere to "
+                                      f"({self.n_depth_frames} depth frames; is the object box right?)")
+            kw = {"where": "lighting pass sphere fit", **self.fit_kwargs}
+            sphere = fit_sphere(self.points.points, radius=self.radius, **kw)
+        self.sphere = sphere
         pending, self._pending = self._pending, []
         for rgb, intr, pose, mask in pending:
             self.add_rgb(rgb, intr, pose, mask)
@@ -166,14 +233,22 @@ class LightingPass:
     def frame_center(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray) -> np.ndarray | None:
         """Where this depth frame sees the ball, as a world point consistent with ``pose`` (or None).
 
-        The frame's depth points (inside the object box) are put in the world with the frame's own
-        ``pose`` and the sphere is re-fitted to them with its radius fixed, starting from the fitted
-        centre (:func:`~appfusion.sphere_fit.refine_center`). Mapping this frame's RGB with the result and
-        the same ``pose`` takes the ball's position relative to the camera from the measurement rather
-        than from the tracking. None when the frame has too few ball points.
+        With the mirror cues: the ball's silhouette in this depth image, put in the world with the frame's
+        own ``pose``, re-locates the ball (radius fixed; :func:`~appfusion.sphere_fit.locate_ball`).
+        Without them: the frame's depth points (inside the object box) are re-fitted with the radius fixed,
+        starting from the fitted centre (:func:`~appfusion.sphere_fit.refine_center`). Mapping this frame's
+        RGB with the result and the same ``pose`` takes the ball's position relative to the camera from
+        the measurement rather than from the tracking. None when the frame does not show enough of the
+        ball.
         """
         if self.sphere is None:
             raise EstimationError("lighting pass: fit the mirror ball before locating it per frame")
+        if self._cues_possible():
+            cues = ball_cues_from_depth(depth, intrinsics, pose, self.box, self.emitter)
+            ref = locate_ball(cues.rays, self.sphere.center, self.sphere.radius)
+            if ref is not None:
+                self.center_shifts_m.append(float(np.linalg.norm(ref - self.sphere.center)))
+            return ref
         pts = points_from_depth(depth, intrinsics, pose, self.box, self.depth_stride)
         tau = float(self.fit_kwargs.get("inlier_threshold_m", 0.01))
         band = max(tau, 0.01)
@@ -214,13 +289,24 @@ class LightingPass:
             if self.sphere is not None:
                 center = None
                 if self.per_frame_center and frame.depth is not None and frame.depth_intrinsics is not None:
-                    center = self.frame_center(frame.depth, frame.depth_intrinsics, pose)
-                    if center is None:          # the ball cannot be located in this frame: skip it
-                        self.n_skipped_frames += 1
+                    center, skip = self._center_or_skip(frame.depth, frame.depth_intrinsics, pose)
+                    if skip:                    # the ball cannot be located in this frame: skip it
                         return
                 self.add_rgb(rgb, frame.rgb_intrinsics, pose_rgb, mask, center)
             elif len(self._pending) < self.max_pending:
                 self._pending.append((rgb, frame.rgb_intrinsics, pose_rgb, mask))
+
+    def _center_or_skip(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray
+                        ) -> tuple[np.ndarray | None, bool]:
+        """Per-frame centre and whether to skip the frame (see ``per_frame_center``)."""
+        center = self.frame_center(depth, intrinsics, pose)
+        if center is not None:
+            return center, False
+        if self._cues_possible():
+            self.n_unlocated_frames += 1        # keep the fitted centre (the tracking's prediction)
+            return None, False
+        self.n_skipped_frames += 1
+        return None, True
 
     # -- result -----------------------------------------------------------------------------------
     def envmap(self, fill: str | None = None, meta: dict[str, Any] | None = None) -> EnvMap:
@@ -235,7 +321,12 @@ class LightingPass:
         """
         info: dict[str, Any] = {"rgb_frames": self.n_rgb_frames, "depth_frames": self.n_depth_frames,
                                 "per_frame_center": self.per_frame_center,
-                                "skipped_frames": self.n_skipped_frames}
+                                "skipped_frames": self.n_skipped_frames,
+                                "unlocated_frames": self.n_unlocated_frames,
+                                "mirror_cues": bool(self._cues_possible()),
+                                "pixel_sigma": self.acc.pixel_sigma}
+        if self.fit_notes:
+            info["fit_notes"] = list(self.fit_notes)
         if self.center_shifts_m:
             info["per_frame_center_shift_mm"] = {"frames": len(self.center_shifts_m),
                                                  "median": 1000 * float(np.median(self.center_shifts_m)),
@@ -307,9 +398,8 @@ def run_lighting_pass(source, box: Any = None, radius: float | None = None, n: i
             rgb = calibrate(f, pose_rgb) if calibrate else f.rgb_linear()
             center = None
             if lp.per_frame_center and f.depth is not None and f.depth_intrinsics is not None:
-                center = lp.frame_center(f.depth, f.depth_intrinsics, pose)
-                if center is None:
-                    lp.n_skipped_frames += 1
+                center, skip = lp._center_or_skip(f.depth, f.depth_intrinsics, pose)
+                if skip:
                     continue
             lp.add_rgb(rgb, f.rgb_intrinsics, pose_rgb, center=center)
             used += 1

@@ -61,6 +61,16 @@ class SphereFit:
         Largest standard error of a centre coordinate, from the same covariance.
     radius_fixed : bool
         True if the radius was given and only the centre was fitted.
+    method : str
+        ``"geometric"`` (:func:`fit_sphere`: distances of depth points to the sphere) or ``"mirror"``
+        (:func:`fit_mirror_ball`: specular-spot points with known normals and silhouette rays).
+    n_spots, n_rays : int
+        Mirror fit only: specular-spot points and silhouette rays that agree with the result (inliers).
+    on_plane : bool
+        The ball was constrained to rest on the support plane (``center_z = plane_z + radius``).
+    plane_gap_m : float
+        Mirror fit only: ``center_z - plane_z - radius`` of the unconstrained fit (0 when not computed);
+        near 0 for a ball resting on the plane.
     """
 
     center: np.ndarray
@@ -72,6 +82,11 @@ class SphereFit:
     radius_std_m: float = 0.0
     center_std_m: float = 0.0
     radius_fixed: bool = False
+    method: str = "geometric"
+    n_spots: int = 0
+    n_rays: int = 0
+    on_plane: bool = False
+    plane_gap_m: float = 0.0
 
     def residuals(self, points: np.ndarray) -> np.ndarray:
         """Signed distances ``|p - c| - R`` (metres) of points (N, 3) to this sphere, shape (N,)."""
@@ -82,7 +97,9 @@ class SphereFit:
                 "rms_m": float(self.rms_m), "inlier_fraction": float(self.inlier_fraction),
                 "n_points": int(self.n_points), "n_inliers": int(self.n_inliers),
                 "radius_std_m": float(self.radius_std_m), "center_std_m": float(self.center_std_m),
-                "radius_fixed": bool(self.radius_fixed)}
+                "radius_fixed": bool(self.radius_fixed), "method": self.method, "n_spots": int(self.n_spots),
+                "n_rays": int(self.n_rays), "on_plane": bool(self.on_plane),
+                "plane_gap_m": float(self.plane_gap_m)}
 
 
 # -- validation --------------------------------------------------------------------------------
@@ -522,14 +539,18 @@ class PointReservoir:
     """Uniform random sample of at most ``capacity`` points out of all points offered (reservoir sampling).
 
     Keeps memory constant over a long environment pass while every point offered has the same chance
-    of being kept.
+    of being kept. Rows have ``dim`` columns (3 for points; more to keep attributes with each point,
+    e.g. a normal).
     """
 
-    def __init__(self, capacity: int = 200_000, seed: int = 0):
+    def __init__(self, capacity: int = 200_000, seed: int = 0, dim: int = 3):
         if capacity < 1:
             raise AppFusionError(f"point reservoir capacity must be positive, got {capacity}")
+        if dim < 1:
+            raise AppFusionError(f"point reservoir rows must have at least one column, got {dim}")
         self.capacity = int(capacity)
-        self._buf = np.empty((self.capacity, 3))
+        self.dim = int(dim)
+        self._buf = np.empty((self.capacity, self.dim))
         self._n = 0          # points stored
         self.seen = 0        # points offered
         self._rng = np.random.default_rng(seed)
@@ -538,8 +559,8 @@ class PointReservoir:
         return self._n
 
     def add(self, points: np.ndarray) -> None:
-        """Offer points (M, 3)."""
-        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        """Offer points (M, dim) (rows of ``dim`` numbers: a point, or a point with attributes)."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, self.dim)
         free = self.capacity - self._n
         if free > 0:
             k = min(free, len(p))
@@ -557,7 +578,7 @@ class PointReservoir:
 
     @property
     def points(self) -> np.ndarray:
-        """The kept points, (n, 3) (a view)."""
+        """The kept rows, (n, dim) (a view)."""
         return self._buf[:self._n]
 
 
@@ -585,3 +606,546 @@ def fit_sphere_from_depth(frames: Iterable[tuple[np.ndarray, Intrinsics, np.ndar
     for depth, intr, pose in frames:
         res.add(points_from_depth(depth, intr, pose, box, stride))
     return fit_sphere(res.points, radius=radius, where=kwargs.pop("where", "sphere fit from depth"), **kwargs)
+
+
+# -- the mirror ball: specular spot and silhouette (paper §4.3, with the depth sensor's physics) ------
+#
+# A structured-light (or time-of-flight) depth camera sees a mirror only where the mirror reflects its
+# own emitter into its camera: the surface normal there is the bisector of the directions to the
+# camera and to the emitter (the "specular spot", a few degrees wide). Elsewhere on the ball the pattern
+# is reflected away: no depth, except sparse wrong returns, typically *behind* the surface (multi-path).
+# Two cues follow that a plain sphere fit to the depth points cannot use:
+#
+# - each spot point p has a known normal n (the bisector), so p = c + R n is linear in the centre c and
+#   the radius R; wrong returns are far from that model (their bisector is not their normal);
+# - the ball leaves a hole in the depth image against the background (the support plane behind it).
+#   The hole's edge is the ball's silhouette except on the side away from the emitter, where the ball's
+#   shadow (the background the emitter cannot see) widens it. A ray through the silhouette is tangent
+#   to the ball: its distance to c is R.
+#
+# Assumptions (true for Kinect v1 on a chrome ball on a paper-covered table; documented in
+# docs/lighting-pass.md): the background right beside the ball on the emitter side returns depth and
+# lies outside the object box (the support plane or farther); the emitter position in the depth
+# camera's frame is known (session meta ``emitter_position_m``); the ball is the only thing in the box.
+
+def _box_bounds(box: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) corners of an axis-aligned box given as an object with ``lo``/``hi`` or a (2, 3) array."""
+    if box is None:
+        return None
+    if hasattr(box, "lo") and hasattr(box, "hi"):
+        return np.asarray(box.lo, float), np.asarray(box.hi, float)
+    if hasattr(box, "contains"):
+        return None
+    b = np.asarray(box, dtype=np.float64)
+    if b.shape != (2, 3):
+        return None
+    return b[0], b[1]
+
+
+def bisector_normals(points: Any, emitter: Any) -> np.ndarray:
+    """Normals of a mirror at its specular-spot depth points: the bisector of the directions to the
+    camera (the origin) and to the emitter (paper §4.3; the structured-light geometry of §6).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Depth points in the depth camera's frame, metres.
+    emitter : (3,) array
+        Emitter position in the same frame, metres (Kinect v1: ``[0.075, 0, 0]``).
+
+    Returns
+    -------
+    (N, 3) ndarray
+        Unit normals in the depth camera's frame (pointing towards the camera side).
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    e = np.asarray(emitter, dtype=np.float64).reshape(3)
+    to_cam = -p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-12)
+    to_em = e - p
+    to_em /= np.maximum(np.linalg.norm(to_em, axis=1, keepdims=True), 1e-12)
+    h = to_cam + to_em
+    return h / np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+
+
+@dataclass
+class BallCues:
+    """What one depth frame says about a mirror ball, in the world (marker) frame.
+
+    Attributes
+    ----------
+    spots : (M, 6) float64 ndarray
+        Depth points inside the object box (``[:, :3]``, metres) with the specular-spot normal each would
+        have (``[:, 3:]``, unit): candidates, most of them wrong returns that the fit rejects.
+    rays : (K, 7) float64 ndarray
+        Silhouette rays: origin (the depth camera's centre, ``[:, :3]``), unit direction (``[:, 3:6]``)
+        and the angle of one pixel (``[:, 6]``, radians; sets the ray's uncertainty).
+    """
+
+    spots: np.ndarray
+    rays: np.ndarray
+
+
+def _step_directions(emitter: Any) -> list[tuple[int, int]]:
+    """Pixel steps (du, dv) from the hole to the background that cross the silhouette, not the shadow."""
+    steps = [(1, 0), (-1, 0), (0, 1), (0, -1)]
+    if emitter is None:
+        return steps
+    e = np.asarray(emitter, float).reshape(3)[:2]
+    ne = float(np.linalg.norm(e))
+    if ne < 1e-3:            # (nearly) coaxial emitter, e.g. time of flight: no shadow beside the ball
+        return steps
+    e = e / ne
+    return [st for st in steps if st[0] * e[0] + st[1] * e[1] > 0.5]
+
+
+def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, box: Any,
+                         emitter: Any = None) -> BallCues:
+    """Specular-spot candidates and silhouette rays of a mirror ball in one depth frame (paper §4.3).
+
+    Parameters
+    ----------
+    depth : (H, W) float array
+        Metres, NaN or <= 0 where invalid (a mirror gives no depth except at its specular spot).
+    intrinsics : Intrinsics
+        Of the depth camera (lens distortion ignored, as in :func:`points_from_depth`).
+    pose : (4, 4) array
+        Camera-to-world pose of the depth camera (world = marker frame).
+    box : object box
+        See :func:`in_box`; holds the ball. Valid depth outside it is background.
+    emitter : (3,) array, optional
+        Emitter position in the depth camera's frame (metres). Without it no spot candidates are made
+        (their normals are unknown) and the hole's edge is taken on all sides (no shadow modelled).
+
+    Returns
+    -------
+    BallCues
+        Silhouette rays: every invalid pixel whose neighbour towards the emitter (in the image) is valid
+        background, through the midpoint of the two pixels, kept when the ray meets the box in front
+        of that background.
+    """
+    depth = np.asarray(depth)
+    if depth.shape != intrinsics.shape:
+        raise AppFusionError(f"depth image of shape {depth.shape} does not match intrinsics {intrinsics.shape}")
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise AppFusionError(f"depth pose must be a finite 4x4 matrix, got shape {pose.shape}")
+    if box is None:
+        raise AppFusionError("mirror-ball cues need the object box (it separates the ball from the background)")
+    z = depth.astype(np.float64)
+    valid = np.isfinite(z) & (z > 0)
+    rays = intrinsics.rays().astype(np.float64)
+    Rw, t = pose[:3, :3], pose[:3, 3]
+    pc = rays[valid] * z[valid][:, None]
+    pw = pc @ Rw.T + t
+    inside = in_box(pw, box)
+    inbox = np.zeros(z.shape, bool)
+    inbox[valid] = inside
+    bg = valid & ~inbox
+    # spot candidates (world point + world bisector normal)
+    if emitter is not None and inside.any():
+        nrm = bisector_normals(pc[inside], emitter) @ Rw.T
+        spots = np.hstack([pw[inside], nrm])
+    else:
+        spots = np.empty((0, 6))
+    # silhouette rays
+    inv = ~valid
+    dist_bg = np.where(bg, z * np.linalg.norm(rays, axis=-1), np.nan)   # range of background pixels
+    out = []
+    H, W = z.shape
+    for du, dv in _step_directions(emitter):
+        ys, ye = max(0, -dv), H - max(0, dv)
+        xs, xe = max(0, -du), W - max(0, du)
+        a = inv[ys:ye, xs:xe] & bg[ys + dv:ye + dv, xs + du:xe + du]
+        vv, uu = np.nonzero(a)
+        if not len(vv):
+            continue
+        vv, uu = vv + ys, uu + xs
+        d = 0.5 * (rays[vv, uu] + rays[vv + dv, uu + du])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out.append(np.hstack([d, dist_bg[vv + dv, uu + du][:, None]]))
+    if out:
+        r = np.concatenate(out)
+        dw = r[:, :3] @ Rw.T
+        far = r[:, 3]
+        bounds = _box_bounds(box)
+        if bounds is not None:
+            lo, hi = bounds
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1 = (lo - t) / dw
+                t2 = (hi - t) / dw
+            tmin = np.nanmax(np.minimum(t1, t2), axis=1)
+            tmax = np.nanmin(np.maximum(t1, t2), axis=1)
+            keep = (tmax >= np.maximum(tmin, 0.0)) & (np.maximum(tmin, 0.0) < far)
+            dw = dw[keep]
+        pix = 1.0 / max(min(intrinsics.fx, intrinsics.fy), 1e-9)
+        rays_out = np.hstack([np.broadcast_to(t, dw.shape), dw, np.full((len(dw), 1), pix)])
+    else:
+        rays_out = np.empty((0, 7))
+    return BallCues(spots=spots, rays=rays_out)
+
+
+def _ray_residuals(c: np.ndarray, R: float, rays: np.ndarray) -> np.ndarray:
+    """Signed distances (metres) from the centre to each silhouette ray, minus the radius."""
+    return np.linalg.norm(np.cross(c - rays[:, :3], rays[:, 3:6]), axis=1) - R
+
+
+def _ray_sigma(c: np.ndarray, rays: np.ndarray, floor: float = 1e-4) -> np.ndarray:
+    """Uncertainty (metres) of each silhouette ray at the ball: the hole's edge is known to +-half a pixel
+    (uniform: sigma 0.29 px), widened a little for pose error."""
+    return np.maximum(0.35 * rays[:, 6] * np.linalg.norm(c - rays[:, :3], axis=1), floor)
+
+
+def _spot_residuals(c: np.ndarray, R: float, spots: np.ndarray) -> np.ndarray:
+    """(M, 3) vector residuals p - c - R n of specular-spot candidates (metres)."""
+    return spots[:, :3] - c - R * spots[:, 3:6]
+
+
+def _mirror_starts(spots: np.ndarray, rays: np.ndarray, radius: float | None, r_range: tuple[float, float],
+                   tau_s: float, tau_r: float, n_hyp: int, rng: np.random.Generator,
+                   n_keep: int = 3) -> list[tuple[np.ndarray, float]]:
+    """RANSAC over specular spots: one spot fixes the centre when the radius is known (c = p - R n), two
+    spots with different normals fix both (p_i - p_j = R (n_i - n_j)). Scored by an MSAC cost over spots
+    and silhouette rays together; the ``n_keep`` best distinct hypotheses."""
+    m = len(spots)
+    if m < (1 if radius is not None else 2):
+        return []
+    P, N = spots[:, :3], spots[:, 3:6]
+    if radius is not None:
+        k = rng.choice(m, size=min(n_hyp, m), replace=False)
+        R = np.full(len(k), float(radius))
+        C = P[k] - R[:, None] * N[k]
+    else:
+        i, j = rng.integers(0, m, size=(2, n_hyp))
+        dn, dp = N[i] - N[j], P[i] - P[j]
+        nn = (dn * dn).sum(axis=1)
+        ok = nn > 0.1 ** 2                                 # normals at least ~6 degrees apart
+        i, j, dn, dp, nn = i[ok], j[ok], dn[ok], dp[ok], nn[ok]
+        R = (dp * dn).sum(axis=1) / nn
+        ok = (R >= r_range[0]) & (R <= r_range[1]) & (np.linalg.norm(dp - R[:, None] * dn, axis=1) < 2 * tau_s)
+        i, j, R = i[ok], j[ok], R[ok]
+        C = 0.5 * (P[i] + P[j] - R[:, None] * (N[i] + N[j]))
+    if not len(R):
+        return []
+    cost = np.zeros(len(R))
+    chunk = max(1, int(2e6 // max(m + len(rays), 1)))
+    for s in range(0, len(R), chunk):
+        c, r = C[s:s + chunk], R[s:s + chunk]
+        e = np.linalg.norm(P[None] - c[:, None] - r[:, None, None] * N[None], axis=2)
+        cost[s:s + chunk] = np.minimum(e * e, tau_s * tau_s).sum(axis=1) / tau_s ** 2
+        if len(rays):
+            dr = np.linalg.norm(np.cross(c[:, None] - rays[None, :, :3], rays[None, :, 3:6]), axis=2) - r[:, None]
+            cost[s:s + chunk] += np.minimum(dr * dr, tau_r * tau_r).sum(axis=1) / tau_r ** 2
+    out: list[tuple[np.ndarray, float]] = []
+    for k in np.argsort(cost, kind="stable"):
+        if all(np.linalg.norm(C[k] - co) > tau_s or abs(R[k] - ro) > tau_s for co, ro in out):
+            out.append((C[k].copy(), float(R[k])))
+            if len(out) == n_keep:
+                break
+    return out
+
+
+def _mirror_lsq(spots: np.ndarray, rays: np.ndarray, c0: np.ndarray, r0: float, radius: float | None,
+                plane_z: float | None, s_spot: float, f_scale: float = 2.0
+                ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """Robust (soft-L1) joint least squares over spot and ray residuals, each divided by its sigma.
+
+    Unknowns: centre and radius; the radius is dropped when given, ``c_z`` when ``plane_z`` is set
+    (the ball rests on the plane: ``c_z = plane_z + R``). Returns centre, radius, the final Jacobian of
+    the sigma-scaled residuals with respect to the free unknowns, and the scaled residuals.
+    """
+    sig_r = _ray_sigma(c0, rays) if len(rays) else np.empty(0)
+
+    def unpack(x):
+        if radius is None:
+            R = x[-1]
+            xy = x[:-1]
+        else:
+            R = radius
+            xy = x
+        cz = plane_z + R if plane_z is not None else xy[2]
+        return np.array([xy[0], xy[1], cz]), R
+
+    def fun(x):
+        c, R = unpack(x)
+        rs = (_spot_residuals(c, R, spots) / s_spot).ravel()
+        rr = _ray_residuals(c, R, rays) / sig_r if len(rays) else np.empty(0)
+        return np.concatenate([rs, rr])
+
+    x0 = [c0[0], c0[1]] + ([] if plane_z is not None else [c0[2]]) + ([r0] if radius is None else [])
+    x0 = np.asarray(x0, float)
+    res = least_squares(fun, x0, loss="soft_l1", f_scale=f_scale, method="trf", x_scale=np.full(len(x0), 0.01),
+                        max_nfev=100)
+    c, R = unpack(res.x)
+    # Jacobian of the plain (non-robust) scaled residuals, by central differences (4 unknowns at most)
+    h = 1e-6
+    J = np.empty((len(res.fun), len(res.x)))
+    for k in range(len(res.x)):
+        e = np.zeros(len(res.x))
+        e[k] = h
+        J[:, k] = (fun(res.x + e) - fun(res.x - e)) / (2 * h)
+    return c, float(R), J, fun(res.x)
+
+
+def fit_mirror_ball(spots: Any, rays: Any, radius: float | None = None, *, on_plane: bool | str = "auto",
+                    plane_z: float = 0.0, plane_tol_m: float = 0.003, spot_sigma_m: float = 0.003,
+                    radius_range_m: tuple[float, float] = (0.01, 0.5), start: tuple[Any, float] | None = None,
+                    min_spots: int = 10, min_rays: int = 30, max_radius_rel_std: float = 0.02,
+                    max_spots: int = 20000, max_rays: int = 20000, n_hypotheses: int = 512, seed: int = 0,
+                    where: str = "mirror-ball fit") -> SphereFit:
+    """Fit a mirror ball to specular-spot points with known normals and to silhouette rays (paper §4.3).
+
+    The paper fits "a perfect sphere to the captured geometry using least squares"; on a mirror the
+    captured geometry is only the specular spot plus wrong returns (see the section comment above), so
+    this fit uses the physics of the sensor instead: spot points lie at ``c + R n`` with ``n`` the
+    emitter/camera bisector, silhouette rays are tangent to the ball. Both are combined in one robust
+    least-squares problem (residuals divided by their uncertainty: ``spot_sigma_m`` for spots, a third
+    of a pixel at the ball for rays), started from a RANSAC over the spots and refined on bands that
+    shrink to 3 sigma of the residuals.
+
+    Parameters
+    ----------
+    spots : (M, 6) array
+        Spot candidates: world point and unit bisector normal (:attr:`BallCues.spots`). May be empty.
+    rays : (K, 7) array
+        Silhouette rays (:attr:`BallCues.rays`). May be empty.
+    radius : float, optional
+        Known radius (metres; e.g. the user's ``--ball-radius``); then it is not fitted.
+    on_plane : bool or "auto"
+        Constrain the ball to rest on the support plane ``z = plane_z`` (centre height = radius).
+        ``"auto"``: only when the unconstrained fit agrees (``|c_z - plane_z - R|`` within
+        ``plane_tol_m`` plus 3 standard errors); the result says which in ``on_plane``.
+    plane_z : float
+        Height of the support plane in the world frame (0 in the marker frame).
+    plane_tol_m : float
+        Gap accepted as "resting on the plane" besides the statistical error (paper, print, pose bias).
+    spot_sigma_m : float
+        Uncertainty of a spot point's ``p - R n`` (depth noise at the spot and the spot's width).
+    radius_range_m : (float, float)
+        Plausible radii; a result outside is an error.
+    start : (centre, radius), optional
+        Starting sphere; default from the RANSAC (or a geometric fit of the spot points).
+    min_spots, min_rays : int
+        The result must agree with at least this many spots or this many rays.
+    max_radius_rel_std : float
+        Largest accepted standard error of the fitted radius, relative to it.
+    max_spots, max_rays : int
+        Larger inputs are subsampled (deterministically with ``seed``).
+    n_hypotheses : int
+        RANSAC hypotheses.
+    seed : int
+        Random seed (subsampling, RANSAC).
+    where : str
+        Prefix of error messages.
+
+    Returns
+    -------
+    SphereFit
+        With ``method="mirror"``, ``n_spots``/``n_rays`` the inliers, ``on_plane`` and ``plane_gap_m``.
+
+    Raises
+    ------
+    EstimationError
+        Too few cues, no sphere agreeing with enough of them, a radius outside the range or not
+        determined by the cues.
+    """
+    S = np.asarray(spots, dtype=np.float64).reshape(-1, 6) if np.size(spots) else np.empty((0, 6))
+    Q = np.asarray(rays, dtype=np.float64).reshape(-1, 7) if np.size(rays) else np.empty((0, 7))
+    S = S[np.isfinite(S).all(axis=1)]
+    Q = Q[np.isfinite(Q).all(axis=1)]
+    if radius is not None:
+        radius = float(radius)
+        if not (np.isfinite(radius) and radius > 0):
+            raise AppFusionError(f"{where}: the given radius must be a positive number of metres, got {radius}")
+    if on_plane not in (True, False, "auto"):
+        raise AppFusionError(f"{where}: on_plane must be True, False or 'auto', got {on_plane!r}")
+    if not (spot_sigma_m > 0 and plane_tol_m >= 0):
+        raise AppFusionError(f"{where}: spot_sigma_m must be > 0 and plane_tol_m >= 0")
+    if len(S) < min_spots and len(Q) < min_rays:
+        raise EstimationError(f"{where}: too few cues of the ball: {len(S)} depth points in the box and "
+                              f"{len(Q)} silhouette rays (need {min_spots} or {min_rays}); is the ball in the "
+                              "object box and the emitter position right?")
+    if (np.abs(S[:, :3]).max(initial=0) > MAX_COORD_M) or (np.abs(Q[:, :3]).max(initial=0) > MAX_COORD_M):
+        raise EstimationError(f"{where}: coordinates beyond {MAX_COORD_M:g} m; points must be in metres")
+    rng = np.random.default_rng(seed)
+    if len(S) > max_spots:
+        S = S[rng.choice(len(S), size=max_spots, replace=False)]
+    if len(Q) > max_rays:
+        Q = Q[rng.choice(len(Q), size=max_rays, replace=False)]
+
+    s_spot = float(spot_sigma_m)
+    tau_s = 2.5 * s_spot
+    tau_r = 4.0 * float(np.median(_ray_sigma(np.zeros(3), Q))) if len(Q) else 0.004
+    tau_r = max(tau_r, 0.002)
+    if start is not None:
+        c0 = np.asarray(start[0], float).reshape(3)
+        cands = [(c0, float(radius if radius is not None else start[1]))]
+    else:
+        cands = _mirror_starts(S, Q, radius, radius_range_m, tau_s, tau_r, n_hypotheses, rng)
+        if len(S) >= 10:
+            try:
+                g = fit_sphere(S[:, :3], radius=radius, max_rms_rel=0.3, min_inlier_fraction=0.05,
+                               radius_range_m=radius_range_m, max_radius_rel_std=1.0, where=where)
+                cands.append((g.center, g.radius))
+            except EstimationError:
+                pass
+    if not cands:
+        raise EstimationError(f"{where}: no sphere hypothesis from {len(S)} spot candidates "
+                              f"({len(Q)} silhouette rays); the ball's specular spot was not seen")
+
+    def refine(c, R, plane):
+        band_s, band_r = 4.0 * tau_s, 2.0 * tau_r
+        si = np.zeros(len(S), bool)
+        ri = np.zeros(len(Q), bool)
+        for it in range(5):
+            es = np.linalg.norm(_spot_residuals(c, R, S), axis=1) if len(S) else np.empty(0)
+            er = np.abs(_ray_residuals(c, R, Q)) if len(Q) else np.empty(0)
+            si, ri = es < band_s, er < band_r
+            if si.sum() < 4 and ri.sum() < 8:
+                break
+            c, R, J, f = _mirror_lsq(S[si], Q[ri], c, R, radius, plane, s_spot)
+            if not (np.isfinite(c).all() and np.isfinite(R)):
+                raise EstimationError(f"{where}: least squares diverged")
+            # shrink the bands to 3 sigma of this round's residuals (MAD), never below the model's sigma
+            es = np.linalg.norm(_spot_residuals(c, R, S[si]), axis=1) if si.any() else np.empty(0)
+            er = np.abs(_ray_residuals(c, R, Q[ri])) if ri.any() else np.empty(0)
+            # (the median length of a 3-D Gaussian residual is 1.54 sigma; of a 1-D one, sigma / 1.4826)
+            if len(es):
+                band_s = float(np.clip(3.0 * np.median(es) / 1.54, 2.0 * s_spot, band_s))
+            if len(er):
+                band_r = float(np.clip(3.0 * 1.4826 * np.median(er), 0.75 * tau_r, band_r))
+        es = np.linalg.norm(_spot_residuals(c, R, S), axis=1) if len(S) else np.empty(0)
+        er = np.abs(_ray_residuals(c, R, Q)) if len(Q) else np.empty(0)
+        cost = float(np.minimum((es / tau_s) ** 2, 1.0).sum() + np.minimum((er / tau_r) ** 2, 1.0).sum())
+        return c, float(R), cost, es < band_s, er < band_r
+
+    best = None
+    for c, R in cands:
+        try:
+            out = refine(np.asarray(c, float), float(R), None)
+        except EstimationError:
+            continue
+        if best is None or out[2] < best[2]:
+            best = out
+    if best is None:
+        raise EstimationError(f"{where}: every sphere hypothesis diverged")
+    c, R, _, si, ri = best
+
+    def stats(c, R, si, ri, plane):
+        _, _, J, f = _mirror_lsq(S[si], Q[ri], c, R, radius, plane, s_spot)
+        dof = max(len(f) - J.shape[1], 1)
+        s2 = max(float(f @ f) / dof, 1e-12)
+        JtJ = J.T @ J
+        try:
+            cov = s2 * np.linalg.inv(JtJ) if np.linalg.cond(JtJ) < 1e12 else None
+        except np.linalg.LinAlgError:
+            cov = None
+        return cov
+
+    gap = float(c[2] - plane_z - R)
+    on = False
+    if on_plane is True or on_plane == "auto":
+        cov = stats(c, R, si, ri, None)
+        if on_plane is True:
+            on = True
+        elif cov is not None:
+            k = cov.shape[0]
+            # gap = c_z - R: its variance from the covariance (c_z is unknown 2, R the last when fitted)
+            g = np.zeros(k)
+            g[2] = 1.0
+            if radius is None:
+                g[-1] = -1.0
+            gap_std = float(np.sqrt(max(g @ cov @ g, 0.0)))
+            on = abs(gap) <= plane_tol_m + 3.0 * gap_std
+        if on:
+            c1, R1, _, si1, ri1 = refine(np.array([c[0], c[1], plane_z + R]), R, plane_z)
+            c, R, si, ri = c1, R1, si1, ri1
+    n_s, n_r = int(si.sum()), int(ri.sum())
+    if n_s < min_spots and n_r < min_rays:
+        raise EstimationError(f"{where}: no sphere agrees with enough cues: {n_s} of {len(S)} spot candidates and "
+                              f"{n_r} of {len(Q)} silhouette rays (need {min_spots} or {min_rays})")
+    if radius is None and not (radius_range_m[0] <= R <= radius_range_m[1]):
+        raise EstimationError(f"{where}: fitted radius {R * 1000:.1f} mm is outside the plausible range "
+                              f"{radius_range_m[0] * 1000:.0f}-{radius_range_m[1] * 1000:.0f} mm")
+    cov = stats(c, R, si, ri, plane_z if on else None)
+    if cov is None or not np.isfinite(cov).all():
+        raise EstimationError(f"{where}: the cues do not determine the ball (singular normal equations): "
+                              f"{n_s} spots, {n_r} silhouette rays; scan the ball from more directions")
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    radius_std = float(std[-1]) if radius is None else 0.0
+    center_std = float(std[:2 if on else 3].max())
+    if radius is None and radius_std > max_radius_rel_std * R:
+        raise EstimationError(f"{where}: the radius is poorly determined ({R * 1000:.1f} +- {radius_std * 1000:.1f} mm "
+                              f"from {n_s} spots and {n_r} silhouette rays); scan the ball from more directions "
+                              "or give its radius")
+    res = np.concatenate([np.linalg.norm(S[si, :3] - c, axis=1) - R, _ray_residuals(c, R, Q[ri])])
+    rms = float(np.sqrt(np.mean(res * res))) if len(res) else 0.0
+    n_all = len(S) + len(Q)
+    return SphereFit(center=np.asarray(c, float), radius=float(R), rms_m=rms,
+                     inlier_fraction=float((n_s + n_r) / max(n_all, 1)), n_points=n_all, n_inliers=n_s + n_r,
+                     radius_std_m=radius_std, center_std_m=center_std, radius_fixed=radius is not None,
+                     method="mirror", n_spots=n_s, n_rays=n_r, on_plane=bool(on), plane_gap_m=gap)
+
+
+def locate_ball(rays: Any, center: Any, radius: float, band_m: float = 0.006, min_rays: int = 8,
+                lateral_sigma_m: float = 0.005, range_sigma_m: float = 0.002,
+                max_shift_m: float = 0.01) -> np.ndarray | None:
+    """Re-locate a ball of known radius in ONE frame from its silhouette rays (lighting pass, §4.3).
+
+    The tracked pose puts the ball where the fitted centre projects; a pose error of 1-2 mm moves the
+    ball against the camera and turns every mirror normal by ``error / R`` (3 degrees for 2 mm on a 35 mm
+    ball, 6 degrees in the reflected direction). The silhouette measures the ball's direction from the
+    camera to a fraction of a pixel; its distance matters little (a range error shifts the reflected
+    directions by ``R / distance`` of it) and is kept near the prediction by a prior.
+
+    Parameters
+    ----------
+    rays : (K, 7) array
+        The frame's silhouette rays (:attr:`BallCues.rays`), in the frame of ``center``.
+    center : (3,) array
+        Predicted centre (the fitted centre, in the world frame of this frame's pose), metres.
+    radius : float
+        Ball radius, metres.
+    band_m : float
+        Only rays within this distance of the predicted sphere's silhouette are used.
+    min_rays : int
+        Fewer rays in the band give None.
+    lateral_sigma_m, range_sigma_m : float
+        Prior standard deviations of the prediction across and along the line of sight.
+    max_shift_m : float
+        A result farther than this from the prediction is refused (None).
+
+    Returns
+    -------
+    (3,) ndarray or None
+    """
+    Q = np.asarray(rays, dtype=np.float64).reshape(-1, 7) if np.size(rays) else np.empty((0, 7))
+    c0 = np.asarray(center, dtype=np.float64).reshape(3)
+    if not (np.isfinite(c0).all() and np.isfinite(radius) and radius > 0 and band_m > 0):
+        raise AppFusionError(f"locate_ball: centre, radius and band must be finite and positive "
+                             f"(got {c0.tolist()}, {radius}, {band_m})")
+    Q = Q[np.isfinite(Q).all(axis=1)]
+    Q = Q[np.abs(_ray_residuals(c0, radius, Q)) < band_m] if len(Q) else Q
+    if len(Q) < max(int(min_rays), 3):
+        return None
+    o = Q[:, :3].mean(axis=0)
+    e3 = c0 - o
+    dist = float(np.linalg.norm(e3))
+    if dist <= radius:
+        return None
+    e3 /= dist
+    e1 = np.cross(e3, [0.0, 0.0, 1.0]) if abs(e3[2]) < 0.9 else np.cross(e3, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    B = np.stack([e1, np.cross(e3, e1), e3], axis=1)
+    prior = np.array([lateral_sigma_m, lateral_sigma_m, range_sigma_m])
+    sig = _ray_sigma(c0, Q)
+
+    def fun(x):
+        c = c0 + B @ x
+        return np.concatenate([_ray_residuals(c, radius, Q) / sig, x / prior])
+
+    res = least_squares(fun, np.zeros(3), loss="soft_l1", f_scale=2.0, method="trf", x_scale=np.full(3, 1e-3),
+                        max_nfev=50)
+    c = c0 + B @ res.x
+    if not np.isfinite(c).all() or np.linalg.norm(c - c0) > max_shift_m:
+        return None
+    return c
