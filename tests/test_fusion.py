@@ -82,6 +82,28 @@ def test_fused_plane_and_raycast_are_unbiased():
     assert np.sqrt(np.nanmean((rr - depth) ** 2)) > 2 * np.sqrt(np.mean((r[ok] - depth[ok]) ** 2))
 
 
+def test_all_blocks_raycast_uses_only_active_blocks():
+    """``hashmap().key_tensor()`` is the whole key buffer (capacity rows, with the erased warm-up blocks
+    far away): the all-blocks ray cast must march only the allocated blocks (it hung Open3D for minutes
+    on a relocalisation of a 160 x 120 session)."""
+    K = K320
+    fu = TSDFFusion(K, FusionConfig())
+    fu.integrate(_plane_depth(K, 0.7, 20.0), np.eye(4))
+    hm = fu.vbg.hashmap()
+    assert hm.key_tensor().shape[0] == hm.capacity() > fu.n_blocks
+    act = fu.active_blocks().numpy()
+    assert len(act) == fu.n_blocks > 0
+    assert np.abs(act).max() < 1000                   # none of the warm-up blocks at z = 100000
+    assert len(np.unique(act, axis=0)) == len(act)
+    pose = make_pose(None, [0.01, -0.01, 0.0])
+    t0 = time.perf_counter()
+    d_all = fu.raycast(pose, all_blocks=True)
+    assert time.perf_counter() - t0 < 2.0
+    d_last = fu.raycast(pose)
+    ok = np.isfinite(d_all) & np.isfinite(d_last)
+    assert ok.mean() > 0.5 and np.allclose(d_all[ok], d_last[ok], atol=1e-6)
+
+
 def test_downsample_depth_block_means():
     rng = np.random.default_rng(0)
     d = (1.0 + rng.normal(0, 0.004, (48, 64))).astype(np.float32)
