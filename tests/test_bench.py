@@ -126,9 +126,13 @@ def fake_stages(monkeypatch):
         assert ctx.quick and ctx.budget_s == 7.0 and ctx.stage == "good" and ctx.time_left() <= 7.0
         ctx.extra["good"] = {"note": np.float64(1.5), "arr": np.arange(3)}
         ctx.add_sweep("knob", "white_err", 2, _pts((1.0, 0.3), (2.0, 0.1), (3.0, 0.2), values=[1, 2, 3]))
+        ctx.note("white_err", "measured on a fake stage")
+        with pytest.raises(BenchError, match="unknown metric 'nonsense'"):
+            ctx.note("nonsense", "x")
         return {"white_err": np.float32(0.004), "ate_mm": 3}
 
     def boom(ctx):
+        ctx.note("ate_mm", "from the failing stage")
         ctx.add_sweep("half", "e", 1, _pts((1.0, 0.3), values=[1]))
         raise RuntimeError("synthetic failure")
 
@@ -143,9 +147,13 @@ def fake_stages(monkeypatch):
     add("nan", lambda ctx: {"chamfer_mm": float("nan")})
 
 
-def test_json_contract_and_failing_stage(tmp_path, fake_stages):
+def test_json_contract_and_failing_stage(tmp_path, fake_stages, monkeypatch):
+    import appfusion.bench.runner as R
+
+    # every real stage exists now: a listed stage without a module is reported as "not built yet"
+    monkeypatch.setattr(R, "STAGES", R.STAGES + ["notyet"])
     logs = []
-    rep = run_bench(tmp_path / "w", quick=True, stages=["boom", "good", "alien", "slow", "nan", "scan"],
+    rep = run_bench(tmp_path / "w", quick=True, stages=["boom", "good", "alien", "slow", "nan", "notyet"],
                     log=logs.append, plot=tmp_path / "pareto.png")
     # every metric, with its unit, goal and direction; null where no stage measured it
     assert set(rep["metrics"]) == set(METRICS)
@@ -162,7 +170,7 @@ def test_json_contract_and_failing_stage(tmp_path, fake_stages):
     assert rep["stages"]["boom"]["status"] == "error" and "synthetic failure" in rep["stages"]["boom"]["error"]
     assert rep["stages"]["good"]["status"] == "ok"
     assert rep["stages"]["alien"]["status"] == "error" and "not_a_metric" in rep["stages"]["alien"]["error"]
-    assert rep["stages"]["scan"]["status"] == "not built yet"
+    assert rep["stages"]["notyet"]["status"] == "not built yet"
     assert any("boom FAILED" in line for line in logs)
     # budgets: the slow stage overran and was warned about
     assert rep["stages"]["slow"]["over_budget"] is True and rep["stages"]["good"]["over_budget"] is False
@@ -172,13 +180,16 @@ def test_json_contract_and_failing_stage(tmp_path, fake_stages):
     sw = rep["sweeps"]["knob"]
     assert sw["stage"] == "good" and sw["front"] == [1, 2] and sw["default_on_front"] is True
     assert rep["defaults_on_front"] == {"knob": True}
+    # notes: the good stage's kept, the failing stage's dropped; printed under the table
+    assert rep["notes"] == {"white_err": "measured on a fake stage"}
+    assert "* white_err: measured on a fake stage" in format_table(rep)
     assert rep["plot"] and (tmp_path / "pareto.png").stat().st_size > 5000
     # strict JSON round trip (numpy values converted, no NaN)
     write_json(rep, tmp_path / "out" / "r.json")
     back = json.loads((tmp_path / "out" / "r.json").read_text(), parse_constant=lambda c: pytest.fail(c))
     assert back["extra"]["good"] == {"note": 1.5, "arr": [0, 1, 2]}
     assert back["metrics"]["chamfer_mm"]["value"] is None
-    for key in ("metrics", "stages", "sweeps", "defaults_on_front", "extra", "quick", "seconds", "budget_s", "plot", "host"):
+    for key in ("metrics", "notes", "stages", "sweeps", "defaults_on_front", "extra", "quick", "seconds", "budget_s", "plot", "host"):
         assert key in back
     table = format_table(rep) + "\n" + format_stage_table(rep)
     assert "white_err" in table and "OVER BUDGET" in table and "knob (good)" in table

@@ -42,8 +42,12 @@ Report
      "stages": {STAGE: {"status": "ok" | "error" | "not built yet", "seconds", "budget_s",
                         "over_budget", "metrics", "peak_rss_mb", ...}},
      "sweeps": {KNOB: {...}}, "defaults_on_front": {KNOB: bool | null},
-     "extra": {STAGE: {...}}, "quick": bool, "seconds": total, "budget_s": total budget,
-     "plot": path | null, "host": {...}}
+     "extra": {STAGE: {...}}, "notes": {METRIC: "how this value was measured"}, "quick": bool,
+     "seconds": total, "budget_s": total budget, "plot": path | null, "host": {...}}
+
+A stage may qualify a metric it reports with ``ctx.note(metric, text)`` (e.g. ``demo_scan_s`` measured on
+a small session with ``--quick``); the notes go to the report's ``"notes"`` and are printed under the
+metric table.
 """
 
 from __future__ import annotations
@@ -71,4 +75,18 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "wavelet_build_s": ("s", 10.0, "lower"),
     "peak_rss_mb": ("MB", None, "lower"),
     "demo_scan_s": ("s", 300.0, "lower"),
+    # end to end (stage "scan"): the same quantities as above after the whole pipeline on a synthetic session
+    "scan_ate_mm": ("mm", 5.0, "lower"),
+    "scan_chamfer_mm": ("mm", 2.0, "lower"),
+    "scan_normal_err_deg": ("deg", 3.0, "lower"),
+    "scan_label_accuracy": ("fraction", 0.95, "higher"),
+    "scan_alpha_cluster_rel_err": ("fraction", 0.05, "lower"),
+    "scan_rho_d_median_rel_err": ("fraction", 0.03, "lower"),
+    "scan_rho_s_rel_err": ("fraction", 0.05, "lower"),
+    "scan_envmap_median_rel_err": ("fraction", 0.05, "lower"),
+    # "skip what the scene doesn't need": fraction of the run time saved by each skip (no goal; the
+    # before / after figures and the error check are in extra and docs/performance.md)
+    "skip_fusion_saving": ("fraction", None, "higher"),
+    "skip_lighting_saving": ("fraction", None, "higher"),
+    "skip_wavelet_saving": ("fraction", None, "higher"),
 }

@@ -1,0 +1,283 @@
+"""Bench stage ``scan``: the whole pipeline end to end on a synthetic session, as a user runs it.
+
+The stage runs :func:`appfusion.pipeline.run_scan` (every pass, export, report, and the evaluation
+against the synthetic scanner's truth of :func:`appfusion.evaluate.evaluate_result`) on a session of
+the synthetic scanner (``replay.synth``), and reports:
+
+``relit_rel_rmse``
+    Relative L2 error of the scanned object relit under the scanner's *second* environment map
+    (sunset) from the reference views, against the scanner's reference renders (issue #8's 5 % goal).
+``demo_scan_s``
+    Wall time of that ``run_scan``, seconds: opening the recording, every pass, evaluation, export and
+    report. The full bench scans the demo session (``replay.synth.demo_session``: two-material,
+    640 x 480, 100 frames per pass, default :class:`~appfusion.pipeline.ScanConfig`), i.e. exactly
+    ``appfusion scan --demo``. **With --quick it is the time of a small session's scan**
+    (:data:`QUICK_SESSION`, :data:`QUICK_POINTS` points), not the demo's; the report says so in
+    ``notes["demo_scan_s"]``.
+``scan_*``
+    The end-to-end figures a user gets (``scan_ate_mm``, ``scan_chamfer_mm``, ``scan_normal_err_deg``,
+    ``scan_label_accuracy``, ``scan_alpha_cluster_rel_err``, ``scan_rho_d_median_rel_err``,
+    ``scan_rho_s_rel_err``, ``scan_envmap_median_rel_err``). The per-stage metrics of the same names
+    without ``scan_`` stay measured by the stages' own generators; these are the same quantities after
+    the whole chain.
+``skip_lighting_saving``
+    "A reused environment map skips the lighting pass" (issue #11): the fraction of the scan's wall
+    time saved when the environment map of an earlier scan on the same markers is given
+    (``ScanRunner(envmap=...)``, ``appfusion scan --envmap``). The full bench measures it as a before /
+    after pair of whole scans (and checks that the relit error is unchanged); ``--quick`` takes the
+    measured time of the first scan's environment stage as the saving (a second scan would not fit
+    in its budget) and says so in ``extra["scan"]["skip_lighting"]["method"]``.
+
+Per-stage seconds of the scan (ir-calibration, environment, geometry, ir, rgb, evaluation, export) go
+to ``extra["scan"]["stage_s"]``; every figure of the evaluation, the scan's summary and messages to
+``extra["scan"]``.
+
+Sessions are rendered once and cached under ``WORKDIR/sessions`` (keyed by every parameter), the
+light transport under ``WORKDIR/synth-cache`` (shared with the ``synth`` stage); the first ``--quick``
+run renders the small session (~30-40 s on 2 cores), later runs reuse it.
+
+If the environment pass cannot fit the mirror ball (``EstimationError`` from the sphere fit; small,
+low-resolution sessions give few depth points on a mirror), the scan is repeated with the ball's
+radius given, as a user would with ``appfusion scan --ball-radius``; ``extra["scan"]["fallback"]``
+holds the error and ``notes`` say so.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+#: quick / full budgets, seconds (the quick scan itself takes ~25-40 s on 2 shared cores)
+BUDGET_S = (45.0, 900.0)
+
+#: the --quick session: small, but enough frames for the mirror ball, the tracking and the materials
+QUICK_SESSION: dict[str, Any] = {"scene": "two-material", "frames": 40, "size": (320, 240), "detail": "test",
+                                 "quality": "test"}
+#: points sampled on the object in the --quick scan (the full bench uses ScanConfig's default, 100k)
+QUICK_POINTS = 10_000
+#: side of the exported textures in the --quick scan (full: ScanConfig's default)
+QUICK_TEXTURE = 256
+
+#: evaluation names -> bench metric names of the end-to-end figures
+SCAN_METRICS = {
+    "ate_mm": "scan_ate_mm",
+    "chamfer_mm": "scan_chamfer_mm",
+    "normal_err_deg": "scan_normal_err_deg",
+    "label_accuracy": "scan_label_accuracy",
+    "alpha_cluster_rel_err": "scan_alpha_cluster_rel_err",
+    "rho_d_median_rel_err": "scan_rho_d_median_rel_err",
+    "rho_s_rel_err": "scan_rho_s_rel_err",
+    "envmap_median_rel_err": "scan_envmap_median_rel_err",
+}
+#: ScanRunner methods timed per scan (stage name in the report)
+_TIMED = {"_stage_ir_calibration": "ir-calibration", "_stage_environment": "environment",
+          "_stage_geometry": "geometry", "_stage_ir": "ir", "_stage_rgb": "rgb", "export": "export"}
+
+
+def session_name(scene: str, frames: int, size: tuple[int, int], seed: int, detail: str, quality: str) -> str:
+    """Folder name of a cached synthetic session: every parameter that changes its bytes."""
+    return f"{scene}-{int(size[0])}x{int(size[1])}-{int(frames)}f-{detail}-{quality}-seed{int(seed)}"
+
+
+def cached_session(root: Path, scene: str, frames: int, size: tuple[int, int], seed: int, detail: str = "test",
+                   quality: str = "test", cache_dir: Path | None = None, log=print) -> tuple[Path, float]:
+    """A synthetic session rendered once into ``root`` and reused afterwards.
+
+    Parameters
+    ----------
+    root : Path
+        Folder of cached sessions.
+    scene, frames, size, seed, detail, quality
+        :func:`replay.synth.render_session` parameters (size = (width, height) in pixels).
+    cache_dir : Path, optional
+        Light-transport cache of the synthetic scanner.
+
+    Returns
+    -------
+    (Path, float)
+        The session folder and the seconds spent rendering it now (0 when it was cached).
+
+    Notes
+    -----
+    The session is rendered into a temporary sibling and renamed into place, so an interrupted render
+    never looks finished (``truth/scene.json`` is written last).
+    """
+    from replay.synth import render_session
+
+    root = Path(root)
+    path = root / session_name(scene, frames, size, seed, detail, quality)
+    if (path / "truth" / "scene.json").exists():
+        return path, 0.0
+    root.mkdir(parents=True, exist_ok=True)
+    if path.exists():
+        shutil.rmtree(path)                      # an interrupted earlier render
+    tmp = root / f".{path.name}.{os.getpid()}.tmp"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    log(f"bench scan: rendering the session {path.name} once (cached in {root}) ...")
+    t0 = time.perf_counter()
+    render_session(scene, tmp, frames=frames, size=tuple(size), seed=seed, detail=detail, quality=quality,
+                   show_progress=False, cache_dir=cache_dir)
+    os.replace(tmp, path)
+    return path, time.perf_counter() - t0
+
+
+@contextmanager
+def stage_timer() -> Iterator[dict[str, float]]:
+    """Time the stages of every :class:`~appfusion.pipeline.ScanRunner` and the evaluation while inside.
+
+    Yields a dict ``{stage: seconds}`` filled as the stages run (a stage run twice adds up); a stage that
+    raised is recorded under ``"failed"`` as ``(stage, message)``. The methods are wrapped on the
+    classes and restored on exit.
+    """
+    from appfusion import evaluate as ev
+    from appfusion.pipeline import ScanRunner
+
+    times: dict[str, Any] = {}
+    saved: list[tuple[Any, str, Any]] = []
+
+    def wrap(owner, attr, label):
+        orig = getattr(owner, attr)
+
+        def timed(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return orig(*args, **kwargs)
+            except Exception as e:
+                times.setdefault("failed", []).append((label, f"{type(e).__name__}: {e}"))
+                raise
+            finally:
+                times[label] = times.get(label, 0.0) + time.perf_counter() - t0
+
+        saved.append((owner, attr, orig))
+        setattr(owner, attr, timed)
+
+    for attr, label in _TIMED.items():
+        wrap(ScanRunner, attr, label)
+    wrap(ev, "evaluate_result", "evaluation")
+    try:
+        yield times
+    finally:
+        for owner, attr, orig in reversed(saved):
+            setattr(owner, attr, orig)
+
+
+def timed_scan(session: Path, out: Path, config, envmap=None, log=None) -> dict[str, Any]:
+    """One fresh ``run_scan`` (earlier checkpoints in ``out`` removed) with its wall and stage times.
+
+    Returns ``{"wall_s", "stage_s", "metrics" (the evaluation, or {} without truth), "summary",
+    "messages"}``; exceptions of the scan propagate.
+    """
+    from appfusion.pipeline import run_scan
+
+    out = Path(out)
+    if out.exists():
+        shutil.rmtree(out)
+    messages: list[str] = []
+
+    def note(msg: str) -> None:
+        messages.append(str(msg))
+        if log is not None:
+            log(f"bench scan: {msg}")
+
+    with stage_timer() as st:
+        t0 = time.perf_counter()
+        summary = run_scan(session, out, config=config, envmap=envmap, progress=False, log=note)
+        wall = time.perf_counter() - t0
+    metrics_path = out / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
+    stage_s = {k: round(v, 3) for k, v in st.items() if k != "failed"}
+    stage_s["other"] = round(max(wall - sum(stage_s.values()), 0.0), 3)
+    return {"wall_s": wall, "stage_s": stage_s, "metrics": metrics, "summary": summary, "messages": messages}
+
+
+def _number(v) -> float | None:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if f == f and abs(f) != float("inf") else None
+
+
+def run(ctx) -> dict[str, float | None]:
+    """Bench entry point (see the module docstring)."""
+    from appfusion.errors import EstimationError
+    from appfusion.pipeline import ScanConfig
+
+    log = ctx.log
+    synth_cache = ctx.workdir / "synth-cache"
+    info: dict[str, Any] = {}
+    if ctx.quick:
+        q = QUICK_SESSION
+        session, render_s = cached_session(ctx.workdir / "sessions", q["scene"], q["frames"], q["size"], ctx.seed,
+                                           q["detail"], q["quality"], cache_dir=synth_cache, log=log)
+        config = ScanConfig(n_points=QUICK_POINTS, texture_size=QUICK_TEXTURE)
+        info["session"] = {**q, "size": list(q["size"]), "seed": ctx.seed, "path": str(session),
+                           "render_s": round(render_s, 2), "demo": False}
+    else:
+        from replay.synth import demo_session
+
+        t0 = time.perf_counter()
+        session = demo_session(Path("out/cache"), show_progress=False)
+        info["session"] = {"path": str(session), "render_s": round(time.perf_counter() - t0, 2), "demo": True}
+        config = ScanConfig()
+    info["config"] = config.to_json()
+    out = ctx.workdir / "scan"
+
+    try:
+        first = timed_scan(session, out, config, log=None)
+    except EstimationError as e:
+        if "sphere" not in str(e).lower():
+            raise
+        # the mirror ball could not be fitted: a user would give its radius (appfusion scan --ball-radius)
+        scene = json.loads((Path(session) / "truth" / "scene.json").read_text())
+        config.ball_radius_m = float(scene["ball"]["radius_m"])
+        info["fallback"] = {"error": str(e), "ball_radius_m": config.ball_radius_m,
+                            "what": "the environment pass could not fit the mirror ball; scanned again with "
+                                    "its radius given (appfusion scan --ball-radius)"}
+        log(f"bench scan: WARNING: {e}; scanning again with the ball radius given")
+        first = timed_scan(session, out, config, log=None)
+    m = first["metrics"]
+    info.update({"wall_s": round(first["wall_s"], 2), "stage_s": first["stage_s"], "evaluation": m,
+                 "summary": first["summary"], "messages": first["messages"][-30:]})
+
+    # -- skip: a reused environment map skips the lighting pass ----------------------------------------
+    env_s = first["stage_s"].get("environment", 0.0)
+    skip: dict[str, Any] = {"environment_stage_s": env_s, "scan_s": round(first["wall_s"], 2)}
+    if not ctx.quick:
+        second = timed_scan(session, ctx.workdir / "scan-envmap", config, envmap=out / "envmap.npz")
+        skip.update({"method": "two whole scans of the demo session: without, then with the first scan's "
+                               "environment map (appfusion scan --envmap)",
+                     "scan_with_envmap_s": round(second["wall_s"], 2), "stage_s_with_envmap": second["stage_s"],
+                     "saved_s": round(first["wall_s"] - second["wall_s"], 2),
+                     "relit_rel_rmse_with_envmap": second["metrics"].get("relit_rel_rmse")})
+        saving = (first["wall_s"] - second["wall_s"]) / first["wall_s"]
+    else:
+        skip.update({"method": "--quick: the measured time of the first scan's environment stage, which a given "
+                               "map skips (the full bench times a second scan with the map)",
+                     "saved_s": round(env_s, 2)})
+        saving = env_s / first["wall_s"] if first["wall_s"] > 0 else None
+    info["skip_lighting"] = skip
+
+    if ctx.quick:
+        ctx.note("demo_scan_s", f"--quick: wall time of a small session's scan ({QUICK_SESSION['size'][0]}x"
+                                f"{QUICK_SESSION['size'][1]}, {QUICK_SESSION['frames']} frames per pass, "
+                                f"{QUICK_POINTS} points), not of the demo session; the full bench scans the demo")
+        ctx.note("skip_lighting_saving", "--quick: the first scan's environment-stage time over its wall time "
+                                         "(the full bench times a second scan with the map)")
+    if "fallback" in info:
+        for k in ("relit_rel_rmse", "scan_envmap_median_rel_err"):
+            ctx.note(k, "mirror-ball radius given: the sphere fit failed (extra.scan.fallback)")
+    ctx.extra["scan"] = info
+
+    got: dict[str, float | None] = {"relit_rel_rmse": _number(m.get("relit_rel_rmse")),
+                                    "demo_scan_s": round(first["wall_s"], 2),
+                                    "skip_lighting_saving": saving}
+    for k, name in SCAN_METRICS.items():
+        got[name] = _number(m.get(k))
+    return got
