@@ -572,7 +572,7 @@ class DoubleProductTables:
         t0 = time.perf_counter()
         self.env = envmap_check(env, "DoubleProductTables")
         al = np.atleast_1d(np.asarray(alphas, dtype=np.float64)).ravel()
-        if al.size == 0 or not np.isfinite(al).all() or (al <= 0).any():
+        if not np.isfinite(al).all() or (al <= 0).any():        # none: D only (a diffuse-only scene)
             raise AppFusionError(f"DoubleProductTables: alphas must be positive finite roughnesses, got {list(al)}")
         if not 5.0 <= theta_max_deg <= 89.0:
             raise AppFusionError(f"DoubleProductTables: theta_max_deg must be in [5, 89], got {theta_max_deg}")

@@ -628,8 +628,20 @@ class ScanRunner:
             return
         P, N = self.points
         labels = self._current_labels()
-        alpha = self._ir_result["alpha"] if getattr(self, "_ir_result", None) is not None else np.array([0.3])
-        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, **self._rgb_kwargs())
+        ir = getattr(self, "_ir_result", None)
+        alpha = ir["alpha"] if ir is not None else np.array([0.3])
+        # model ladder, first rung from the IR pass: a cluster whose IR shows no lobe (no fit, or rho_s 0)
+        # is diffuse, and the RGB pass builds no double-product table for it
+        specular = None
+        if ir is not None and "rho_s_ir" in ir:
+            specular = np.asarray(ir["fitted"], bool) & (np.asarray(ir["rho_s_ir"]) > 1e-6)
+            if int(labels.max()) + 1 > len(specular):           # painted new clusters: let RGB decide
+                specular = np.r_[specular, np.ones(int(labels.max()) + 1 - len(specular), bool)]
+                alpha = np.r_[alpha, np.full(len(specular) - len(alpha), 0.3, np.float32)]
+            if not specular.all():
+                self._note(f"rgb: cluster(s) {', '.join(str(c) for c in np.flatnonzero(~specular))} show no "
+                           "specular lobe in the IR: diffuse only, no double-product tables for them")
+        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, **self._rgb_kwargs())
         wb = self._white_balancer(self.geometry)
         # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
         marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None

@@ -200,6 +200,10 @@ class RGBPass:
         samples scatter by ~5 %); the least-squares mean is not.
     min_lsq_samples : int
         Samples a point needs before its least-squares rho_d replaces the percentile (default 3).
+    specular : (C,) bool array, optional
+        Clusters that may have a specular lobe (default all). A cluster the IR pass found diffuse
+        (model ladder's first rung) gets ``S = 0``: no double-product table is built for its alpha
+        and its samples skip the S look-up; its rho_s is 0.
     ladder_margin : float
         Model ladder (``"lsq"``): a cluster keeps its Ward lobe only if that lowers the held-out
         residual sum of squares by more than this fraction (default 0.2 %); otherwise it is diffuse
@@ -226,6 +230,7 @@ class RGBPass:
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
                  bins: int = 64, ratio_range: tuple[float, float] = (1 / 64, 2.0), percentile: float = 10.0,
                  estimator: str = "lsq", min_lsq_samples: int = 3, ladder_margin: float = 0.002,
+                 specular=None,
                  dark: float = 0.01, saturated: float = 0.98, min_cos: float = math.cos(math.radians(75)),
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
                  depth_tol: float = 0.01, table_kwargs: dict | None = None):
@@ -274,7 +279,12 @@ class RGBPass:
         self.alphas = al
         self.n_clusters = len(al)
         t0 = time.perf_counter()
-        used = np.unique(al[np.unique(self.labels)])
+        spec = np.ones(len(al), bool) if specular is None else np.asarray(specular, bool).reshape(-1)
+        if spec.shape != al.shape:
+            raise AppFusionError(f"RGBPass: specular must be {len(al)} flags (one per cluster), got {spec.shape}")
+        self.specular = spec
+        self._spec_point = spec[self.labels]
+        used = np.unique(al[np.unique(self.labels[self._spec_point])]) if self._spec_point.any() else np.zeros(0)
         if tables is None:
             tables = DoubleProductTables(env, used, **(table_kwargs or {}))
         else:
@@ -506,7 +516,13 @@ class RGBPass:
         if len(k) == 0:
             return 0
         p, L, wo, nrm = p[k], L[k], wo[k], nrm[k]
-        S = self.tables.S(nrm, wo, self.point_alpha[p])                      # (k, 3) float32
+        sp = self._spec_point[p]
+        if sp.all():
+            S = self.tables.S(nrm, wo, self.point_alpha[p])                  # (k, 3) float32
+        else:                                                 # diffuse-only clusters: S = 0, no table
+            S = np.zeros((len(p), 3), np.float32)
+            if sp.any():
+                S[sp] = self.tables.S(nrm[sp], wo[sp], self.point_alpha[p[sp]])
         if unique:
             self._accumulate(p, L, S)
         else:                                                 # repeated points: rounds of distinct ones
@@ -596,7 +612,8 @@ class RGBPass:
             r_w = vll - 2 * rs_h[lab] * cov + rs_h[lab] ** 2 * var
             rss[:, 0] += np.bincount(lab[test_m], weights=vll[test_m].sum(1), minlength=C)
             rss[:, 1] += np.bincount(lab[test_m], weights=r_w[test_m].sum(1), minlength=C)
-        self.model = ["ward" if (ok[c].any() and rss[c, 1] < (1 - self.ladder_margin) * rss[c, 0]) else "diffuse"
+        self.model = ["ward" if (self.specular[c] and ok[c].any()
+                                 and rss[c, 1] < (1 - self.ladder_margin) * rss[c, 0]) else "diffuse"
                       for c in range(C)]
         self.heldout_rss = rss
         rho_s = np.where(np.array([m == "ward" for m in self.model])[:, None], rho_s, 0.0)

@@ -153,6 +153,31 @@ def test_model_ladder_picks_diffuse_for_a_matte_cluster_and_ward_for_a_glossy_on
     assert np.median(rel) < 0.02
 
 
+def test_diffuse_clusters_skip_their_tables(sphere_run):
+    """A cluster flagged diffuse (the IR pass saw no lobe) gets no double-product table and rho_s 0;
+    with every cluster diffuse only D is built."""
+    import time
+
+    from appfusion.double_product import DoubleProductTables
+
+    sc, poses, frames, rp0, _ = sphere_run
+    t0 = time.perf_counter()
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, table_kwargs=TABLES,
+                 specular=[False, True])
+    t_one = time.perf_counter() - t0
+    assert rp.tables.alphas == [float(sc.alphas[1])]
+    for (rgb, depth, _), T in list(zip(frames, poses))[:8]:
+        rp.add_frame(rgb, depth, sc.rgb_intrinsics, sc.depth_intrinsics, T, sc.depth_to_rgb)
+    res = rp.result()
+    assert res.model[0] == "diffuse" and (res.rho_s[0] == 0).all() and np.isfinite(res.rho_d).all()
+    none = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, table_kwargs=TABLES,
+                   specular=[False, False])
+    assert none.tables.alphas == [] and isinstance(none.tables, DoubleProductTables)
+    assert none.table_seconds < t_one
+    with pytest.raises(AppFusionError, match="specular"):
+        RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, specular=[True])
+
+
 def test_repeated_points_in_one_call_equal_separate_calls(sphere_run):
     sc = sphere_run[0]
     C = np.array([0.3, 0.2, 0.4])
