@@ -194,7 +194,14 @@ def plan_passes(source) -> dict[str, tuple[int, int]]:
 
 
 class _Control:
-    """Thread-safe pause / stop flags and the live pass selector, set by the GUI."""
+    """Thread-safe pause / stop flags and the live pass selector, set by the GUI and the CLI.
+
+    Live sources: ``live_pass`` tags the frames being recorded, ``live_emitter`` (None: as the device
+    says) their emitter state; ``live_left`` frames remain in the current step of a plan
+    (:meth:`ScanRunner.set_live_plan`; None: until the next :meth:`ScanRunner.next_pass` or stop) and
+    ``live_plan`` holds the steps after it. ``live_gen`` counts changes, so that the recording loop
+    applies each (stream selection, emitter control) once, between two frames.
+    """
 
     def __init__(self):
         self.run_event = threading.Event()
@@ -202,6 +209,18 @@ class _Control:
         self.stop_event = threading.Event()
         self.lock = threading.Lock()
         self.live_pass = "environment"
+        self.live_emitter: bool | None = None
+        self.live_left: int | None = None
+        self.live_plan: list[tuple[str, int | None, bool | None]] = []
+        self.live_gen = 0
+
+    def set_step(self, name: str, frames: int | None, emitter: bool | None) -> None:
+        """Make ``(name, frames, emitter)`` the current live step (call with ``lock`` held)."""
+        self.live_pass = name
+        if emitter is not None:
+            self.live_emitter = bool(emitter)
+        self.live_left = frames
+        self.live_gen += 1
 
     def wait_if_paused(self) -> bool:
         """Block while paused; returns False once a stop was asked for."""
@@ -291,8 +310,15 @@ class ScanRunner:
     def stopped(self) -> bool:
         return self._ctl.stop_event.is_set()
 
-    def next_pass(self, name: str | None = None) -> str:
-        """Live sources: move to pass ``name`` (or the next one in :data:`PASSES`); returns it."""
+    def next_pass(self, name: str | None = None, emitter: bool | None = None) -> str:
+        """Live sources: move to pass ``name`` (or the next one in :data:`PASSES`); returns it.
+
+        The device's streams switch to what the pass needs before the next frame (a Kinect v1:
+        depth + IR for ``ir-calibration`` / ``geometry``, depth + RGB for ``environment`` / ``rgb``).
+        ``emitter`` (optional) tags the frames from now on as emitter off (False: the §6 background
+        frames; a device with an emitter control is switched, on a Kinect v1 the user covers it) or
+        on (True). A plan given to :meth:`set_live_plan` is dropped: the caller drives the passes.
+        """
         with self._ctl.lock:
             if name is None:
                 order = [p for p in PASSES if p != "scan"]
@@ -300,8 +326,34 @@ class ScanRunner:
                 name = order[min(i + 1, len(order) - 1)]
             if name not in PASSES:
                 raise AppFusionError(f"unknown pass {name!r}; passes are {', '.join(PASSES)}")
-            self._ctl.live_pass = name
+            self._ctl.live_plan = []
+            self._ctl.set_step(name, None, emitter)
         return name
+
+    def set_live_plan(self, steps) -> None:
+        """Live sources: record these steps one after another, each for a number of frames.
+
+        Parameters
+        ----------
+        steps : sequence of (pass, frames, emitter)
+            ``pass`` one of :data:`PASSES`; ``frames`` >= 1, or None for the last step only (until
+            :meth:`stop`); ``emitter`` as in :meth:`next_pass` (None: unchanged). The recording ends
+            after the last step's frames and the recording is processed.
+        """
+        steps = [(str(n), None if f is None else int(f), None if e is None else bool(e)) for n, f, e in steps]
+        if not steps:
+            raise AppFusionError("live plan: no steps given")
+        for k, (name, frames, _) in enumerate(steps):
+            if name not in PASSES:
+                raise AppFusionError(f"live plan: unknown pass {name!r}; passes are {', '.join(PASSES)}")
+            if frames is None and k != len(steps) - 1:
+                raise AppFusionError(f"live plan: step {k + 1} ({name}) needs a frame count (only the last "
+                                     f"step may run until stopped)")
+            if frames is not None and frames < 1:
+                raise AppFusionError(f"live plan: step {k + 1} ({name}) must last at least 1 frame, got {frames}")
+        with self._ctl.lock:
+            self._ctl.live_plan = steps[1:]
+            self._ctl.set_step(*steps[0])
 
     def paint(self, point_idx, label: int) -> int:
         """Manual cluster refinement (§5.2): give points a cluster label that re-clustering keeps.
@@ -841,33 +893,110 @@ class ScanRunner:
         return res
 
     def _run_live(self):
+        """Record a live source pass by pass into ``out_dir/live-session``, then process the recording.
+
+        Between two frames the pass and emitter state asked for (:meth:`next_pass`,
+        :meth:`set_live_plan`) is applied to the device: its streams switch to what the pass needs
+        (``select_pass``; a failure is noted and the running streams are kept) and an ``emitter``
+        control, where the device has one, is switched. Frames are tagged with the pass (``pass``
+        events) and, when asked, the emitter state (``emitter`` events). Recording ends at the end
+        of the plan, at :meth:`stop`, or when the source ends or fails; the device is closed, the
+        frames so far stay in the crash-safe session, and it is processed like any recording.
+
+        Raises
+        ------
+        PassMissingError
+            Not one frame was recorded.
+        """
         from replay.session import SessionReader, SessionWriter
 
-        src = self.source
+        from .errors import SourceError
+
+        src, ctl = self.source, self._ctl
+        name = str(getattr(src, "name", "live source"))
         rec_path = self.out_dir / "live-session"
-        intr = dict(src.intrinsics)
-        meta = src.meta if isinstance(src.meta, dict) else {}
-        writer = SessionWriter(rec_path, device=str(meta.get("device", getattr(src, "name", "live"))),
-                               intrinsics=intr, emitter_position_m=meta.get("emitter_position_m", (0.075, 0, 0)))
-        self._publish(force=True, stage=self._ctl.live_pass, guidance=GUIDANCE.get(self._ctl.live_pass, ""))
-        n = 0
+        writer, it, applied = None, None, None
+        n, per_pass = 0, {}
+        why = "the source ended"
         try:
-            for frame in src:
-                if not self._ctl.wait_if_paused():
+            while True:
+                if not ctl.wait_if_paused():
+                    why = "stopped"
                     break
-                with self._ctl.lock:
-                    p = self._ctl.live_pass
-                writer.write(frame.replace(pass_name=p))
+                with ctl.lock:
+                    if ctl.live_left == 0:
+                        if not ctl.live_plan:
+                            why = "the planned frames were recorded"
+                            break
+                        ctl.set_step(*ctl.live_plan.pop(0))
+                    gen, p, em = ctl.live_gen, ctl.live_pass, ctl.live_emitter
+                if gen != applied:
+                    applied = gen
+                    select = getattr(src, "select_pass", None)
+                    if callable(select):
+                        try:
+                            select(p)
+                        except SourceError as e:
+                            self._note(f"live: {e}; the {p} frames keep the streams running now")
+                    if em is not None and "emitter" in (src.controls or {}):
+                        try:
+                            src.set_control("emitter", em)
+                        except SourceError as e:
+                            self._note(f"live: {e}")
+                    self._publish(force=True, stage=p, guidance=GUIDANCE.get(p, ""))
+                if it is None:
+                    it = iter(src)
+                try:
+                    frame = next(it)
+                except StopIteration:
+                    break
+                frame = frame.replace(pass_name=p, **({} if em is None else {"emitter": em}))
+                if writer is None:
+                    writer = self._live_writer(SessionWriter, rec_path, frame)
+                writer.write(frame)
                 n += 1
+                per_pass[p] = per_pass.get(p, 0) + 1
+                with ctl.lock:
+                    if ctl.live_gen == gen and ctl.live_left is not None:
+                        ctl.live_left -= 1
                 self._publish(stage=p, frame=n, last_frame=frame, guidance=GUIDANCE.get(p, ""))
         except AppFusionError as e:
+            why = "the source failed"
             self._note(f"live source stopped: {e} (the {n} frames recorded so far are kept)")
         finally:
-            writer.close()
-        self._note(f"live: recorded {n} frames into {rec_path}; processing the passes")
+            try:
+                if writer is not None:
+                    writer.close()
+            finally:
+                if it is not None and hasattr(it, "close"):
+                    it.close()
+                src.close()  # release the device before the long processing
+        if writer is None:
+            raise PassMissingError(f"live: no frame was recorded from {name} ({why})")
+        self._note(f"live: recorded {n} frames ({', '.join(f'{k} {v}' for k, v in per_pass.items())}) into "
+                   f"{rec_path}; {why}; processing the passes")
         self.source = SessionReader(rec_path)
         self._ctl.stop_event.clear()
         return self._run_recording()
+
+    def _live_writer(self, writer_cls, path: Path, first: Frame):
+        """The session writer of a live recording, opened at its first frame (intrinsics, extrinsics,
+        IR bits, emitter position and the source's ``extra`` meta such as the marker layout)."""
+        src = self.source
+        meta = src.meta if isinstance(src.meta, dict) else {}
+        intr = dict(src.intrinsics or {})
+        for s in first.streams:
+            fi = getattr(first, f"{s}_intrinsics")
+            if fi is not None:
+                intr[s] = fi
+        extra = json.loads(json.dumps(meta.get("extra") or {}, default=str))
+        extra.setdefault("recorded_from", str(getattr(src, "name", "live")))
+        ir_bits = meta.get("ir_bits") or extra.get("ir_bits") or 10
+        return writer_cls(path, device=str(meta.get("device", getattr(src, "name", "live"))), intrinsics=intr,
+                          depth_to_ir=first.depth_to_ir, depth_to_rgb=first.depth_to_rgb,
+                          rgb_encoding=first.rgb_encoding, ir_bits=int(ir_bits), extra=extra,
+                          emitter_position_m=meta.get("emitter_position_m") or (0.075, 0.0, 0.0),
+                          notes="live scan (appfusion.pipeline.ScanRunner)")
 
     # -- export --------------------------------------------------------------------------------------
     def export(self, out_dir=None, truth=None) -> dict[str, Path]:

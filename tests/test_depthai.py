@@ -291,6 +291,36 @@ def test_record_mcap_then_replay_through_the_same_host_side(tmp_path):
         DepthAISource(replay_dir=tmp_path / "empty").open()
 
 
+def test_scan_device_depthai_replay_records_the_combined_pass_then_one_error(tmp_path, capsys):
+    """``appfusion scan --device depthai-replay:DIR``: a host replay streams depth, IR and RGB together, so
+    the live plan is ir-calibration, environment and one combined scan pass, advanced by frame counts;
+    the frames show no markers, so the scan ends with one error that names them and keeps the recording."""
+    from appfusion.cli import main
+    from appfusion.pipeline import plan_passes
+    from replay.session import SessionReader
+
+    rec = tmp_path / "oak"
+    with DepthAISource(build_graph=synthetic_graph(30, dots_phase=None), calibration=_calibration(),
+                       record_dir=rec, mono_size=(W, H), rgb_size=(W, H), illumination="off") as live:
+        assert len(list(live)) >= 30  # a replay may lose a few of the last messages: the plan needs 15
+    out = tmp_path / "scan"
+    rc = main(["scan", "--device", f"depthai-replay:{rec}", "--out", str(out), "--pass-frames",
+               "ir-calibration=6,environment=4,scan=5", "--dark-frames", "2", "--points", "500", "--no-progress"])
+    cap = capsys.readouterr()
+    assert rc == 2
+    assert "passes ir-calibration, environment, scan (streams together: depth+ir+rgb)" in cap.out
+    err = [line for line in cap.err.splitlines() if line.strip()]
+    assert len(err) == 1 and "no frame shows the four white circles" in err[0]
+    assert f"kept in {out / 'live-session'}" in err[0] and "no IR stream" not in err[0]
+    r = SessionReader(out / "live-session")
+    assert plan_passes(r) == {"ir-calibration": (0, 6), "environment": (6, 10), "scan": (10, 15)}
+    assert [r.frame(i).emitter for i in range(6)] == [False, False, True, True, True, True]
+    f = r.frame(12)
+    assert f.streams == ("depth", "ir", "rgb") and f.depth.shape == (H, W)
+    assert r.meta["extra"]["markers"]["radius_m"] == pytest.approx(0.025)  # the printed-sheet defaults
+    np.testing.assert_allclose(r.depth_to_ir[:3, 3], [0.0375, 0, 0], atol=1e-9)  # from the replay's calibration
+
+
 def test_bad_message_is_reported_with_frames_so_far():
     class Gen(dai.node.ThreadedHostNode):
         def __init__(self):

@@ -10,7 +10,7 @@ import pytest
 
 from appfusion.errors import DeviceError, SourceError
 from appfusion.source import StreamCaps
-from drivers import open_device, streams_for_pass
+from drivers import live_pass_plan, open_device, streams_for_pass
 from drivers import openni2_source as ons
 from drivers.openni2_source import OpenNI2Source
 
@@ -122,6 +122,34 @@ def test_kinect_capability_model_refuses_ir_with_rgb(openni):
         streams_for_pass("scan", KINECT_CAPS)
     with pytest.raises(SourceError, match="unknown scanning pass"):
         streams_for_pass("lunch", KINECT_CAPS)
+
+
+def test_live_pass_plans_follow_the_capability_model():
+    # Kinect v1 / PrimeSense: IR and colour not at once -> geometry and rgb one after the other
+    assert live_pass_plan(KINECT_CAPS) == ["ir-calibration", "environment", "geometry", "rgb"]
+    assert live_pass_plan(KINECT_CAPS, envmap=True, ir_profile=True) == ["geometry", "rgb"]
+    # depth, IR and RGB together (OAK-D Pro): one combined scan pass
+    both = StreamCaps.all_together({"depth", "ir", "rgb"})
+    assert live_pass_plan(both) == ["ir-calibration", "environment", "scan"]
+    assert streams_for_pass("scan", both) == {"depth", "ir", "rgb"}
+    # no IR at all (the DummyDevice): scan on depth + RGB, no IR calibration; a Kinect's scan still refuses
+    no_ir = StreamCaps.all_together({"depth", "rgb"})
+    assert live_pass_plan(no_ir) == ["environment", "scan"] and streams_for_pass("scan", no_ir) == {"depth", "rgb"}
+    with pytest.raises(SourceError, match="record the geometry and rgb passes"):
+        streams_for_pass("scan", KINECT_CAPS)
+    assert live_pass_plan(StreamCaps.all_together({"depth", "ir"})) == ["ir-calibration", "geometry"]
+    with pytest.raises(SourceError, match=r"pass 'geometry' needs \{depth, ir\}"):
+        live_pass_plan(StreamCaps.all_together({"depth"}))
+    with pytest.raises(SourceError, match="a scan needs a depth stream, but the device streams only ir, rgb"):
+        live_pass_plan(StreamCaps.all_together({"ir", "rgb"}))
+
+
+def test_dummy_plan_and_scan_pass_for_real(openni):
+    with OpenNI2Source("Dummy") as src:
+        assert live_pass_plan(src.caps) == ["environment", "scan"]
+        assert src.select_pass("scan") == {"depth", "rgb"}
+        fr = _take(src, 2)
+    assert all(f.streams == ("depth", "rgb") and f.pass_name == "scan" for f in fr)
 
 
 def test_emitter_control_unsupported_is_a_clear_error(openni):
