@@ -311,6 +311,25 @@ def test_options_and_plans():
             runner.set_live_plan(steps)
 
 
+def test_kinect_without_marker_side_is_refused_before_recording(tmp_path):
+    """A Kinect v1's rgb pass takes its poses from the markers: without their layout the scan would fail
+    only after minutes of recording, so it is refused at once (and the device is closed again)."""
+    from appfusion.source import StreamCaps
+
+    class Kinect(SyntheticKinectStub):
+        @property
+        def caps(self):
+            return StreamCaps(frozenset({"depth", "ir", "rgb"}),
+                              (frozenset({"depth", "ir"}), frozenset({"depth", "rgb"})))
+
+    src = Kinect()
+    with pytest.raises(AppFusionError, match=r"give --marker-side .*key circle"):
+        scan_live(src, tmp_path / "out", progress=False, log=lambda m: None)
+    assert not src.is_open and not (tmp_path / "out" / "live-session").exists()
+    with pytest.raises(AppFusionError, match="key_radius_m 0.02 must exceed radius_m"):
+        scan_live(Kinect(), tmp_path / "out", markers={"key_radius_m": 0.02, "side_m": 0.3}, progress=False)
+
+
 def test_cli_argument_errors(capsys):
     from appfusion.cli import main
 

@@ -402,10 +402,11 @@ def scan_live(source: Source, out: str | Path, config=None, pass_frames: dict[st
         steps = live_steps(passes, counts, dark_frames)
         has_control = "emitter" in (source.controls or {})
         dev = LiveDevice(source, {"markers": mk}).open()  # the device itself is open already
+        runner = ScanRunner(dev, out, config=config, envmap=envmap, ir_profile=ir_profile, log=log,
+                            progress=progress)  # loads --envmap / --ir-profile: bad files fail here
     except BaseException:
         source.close()
         raise
-    runner = ScanRunner(dev, out, config=config, envmap=envmap, ir_profile=ir_profile, log=log, progress=progress)
     name = getattr(source, "name", spec or "device")
     log(f"live scan of {name}: passes {', '.join(passes)} "
         f"(streams together: {' | '.join('+'.join(sorted(g)) for g in caps.together)}); recording to {rec_path}")
