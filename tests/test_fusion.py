@@ -104,6 +104,52 @@ def test_all_blocks_raycast_uses_only_active_blocks():
     assert ok.mean() > 0.5 and np.allclose(d_all[ok], d_last[ok], atol=1e-6)
 
 
+def test_keyframes_skip_frames_without_new_coverage(monkeypatch):
+    """A frame at the keyframe's pose seeing only surfaces the volume has is tracked but not fused, and
+    tracking reuses the keyframe's ray cast; one that reveals a new surface is fused whatever its motion."""
+    K = K320
+    plane = _plane_depth(K, 0.7, 20.0)
+    bump = plane.copy()
+    bump[60:120, 40:120] -= 0.12                     # a box 12 cm in front of the plane: new voxel blocks
+    fu = TSDFFusion(K, FusionConfig())
+    assert fu.config.keyframe_m > 0 and fu.config.keyframe_deg > 0       # on by default
+    calls = []
+    orig = TSDFFusion.raycast
+    monkeypatch.setattr(TSDFFusion, "raycast", lambda self, *a, **k: calls.append(1) or orig(self, *a, **k))
+    res = [fu.process(d) for d in (plane, plane, plane, bump)]
+    assert [r.state for r in res] == ["first", "ok", "ok", "ok"], [r.reason for r in res]
+    assert [r.integrated for r in res] == [True, False, False, True]
+    assert fu.n_skipped == 2 and fu._n_integrated == 2
+    assert len(calls) == 1                            # frames 2-4 track against frame 1's ray cast
+    assert "integrate" not in res[1].ms and "skip_check" in res[1].ms
+    # keyframes off: every tracked frame is fused (KinectFusion)
+    off = TSDFFusion(K, FusionConfig(keyframe_m=0.0, keyframe_deg=0.0))
+    assert all(off.process(d).integrated for d in (plane, plane, plane))
+
+
+def test_keyframes_keep_tracking_on_a_dense_sequence():
+    """0.5 degrees per frame: about half the frames skip fusion, the poses stay within 5 mm and the mesh
+    matches the one fused from every frame."""
+    s = make_sequence(24, 320, 240, seed=2, sweep_deg=12.0, colour_cast=False)
+    runs = {}
+    for name, km in (("on", 0.01), ("off", 0.0)):
+        fu = TSDFFusion(s.intrinsics, FusionConfig(keyframe_m=km), initial_pose=s.poses[0])
+        h = s.side / 2 + 0.05
+        fu.set_roi(np.eye(4), [-h, -h, -0.05], [h, h, 0.35])
+        res = [fu.process(f.depth) for f in s.frames]
+        assert all(r.state != "lost" for r in res)
+        err = np.linalg.norm(np.array([r.pose[:3, 3] - p[:3, 3] for r, p in zip(res, s.poses)]), axis=1)
+        assert err.max() < 0.005, name
+        runs[name] = (fu, res)
+    on, off = runs["on"][0], runs["off"][0]
+    assert 6 <= on.n_skipped <= 18 and off.n_skipped == 0
+    a = np.asarray(on.extract_mesh(1.0).vertices)
+    b = o3d.t.geometry.RaycastingScene()
+    b.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(off.extract_mesh(1.0)))
+    d = b.compute_distance(o3d.core.Tensor(a.astype(np.float32))).numpy()
+    assert np.median(d) < 1e-3
+
+
 def test_downsample_depth_block_means():
     rng = np.random.default_rng(0)
     d = (1.0 + rng.normal(0, 0.004, (48, 64))).astype(np.float32)

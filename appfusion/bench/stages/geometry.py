@@ -15,7 +15,12 @@ Metrics:
 - ``white_err``: median over frames of the largest channel error of a held-out circle after white
   balance from the other three (relative to its white level);
 - ``fps_tracking_fusion``: 1 / median time of tracking + fusion (not marker detection) of
-  640 x 480 depth frames.
+  640 x 480 depth frames;
+- ``skip_fusion_saving``: "frames that add no new coverage skip fusion" (issue #11,
+  ``FusionConfig.keyframe_m`` / ``keyframe_deg``): the fraction of the geometry pass's CPU time saved
+  on a sequence as dense as a hand-held 30 fps scan (0.5 degrees of orbit per frame), keyframes on
+  against off; the before / after chamfer, normal error and ATE are in ``extra["geometry"]
+  ["skip_fusion"]`` (the full bench also sweeps the thresholds: knob ``fusion_keyframe``).
 """
 
 from __future__ import annotations
@@ -24,7 +29,91 @@ import time
 
 import numpy as np
 
-BUDGET_S = (40.0, 120.0)
+BUDGET_S = (40.0, 180.0)
+
+#: keyframe thresholds (metres, degrees) measured by the skip; "off" integrates every frame
+KEYFRAME_SETTINGS = {"off": (0.0, 0.0), "1cm/2deg": (0.01, 2.0), "2cm/4deg": (0.02, 4.0), "4cm/8deg": (0.04, 8.0)}
+
+
+def geometry_errors(seq, res) -> dict[str, float]:
+    """Chamfer (mm), median normal error (deg) and ATE (mm) of a geometry-pass result against the
+    sequence's truth (see the module docstring); mesh samples drawn with a fixed seed."""
+    import open3d as o3d
+
+    truth = o3d.t.geometry.RaycastingScene()
+    truth.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(seq.object_mesh))
+    ours = o3d.t.geometry.RaycastingScene()
+    ours.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(res.mesh))
+    o3d.utility.random.seed(1)
+    acc = truth.compute_distance(o3d.core.Tensor(
+        np.asarray(res.mesh.sample_points_uniformly(50000).points, np.float32))).numpy()
+    vis = seq.visible_points[seq.visible_points[:, 2] > res.box.z_min].astype(np.float32)
+    comp = ours.compute_distance(o3d.core.Tensor(vis)).numpy()
+    gn = truth.compute_closest_points(o3d.core.Tensor(res.points.astype(np.float32)))["primitive_normals"].numpy()
+    nerr = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", res.normals, gn)), 0, 1)))
+    ate = float(np.sqrt(np.nanmean(np.sum((res.poses[:, :3, 3] - seq.poses[:, :3, 3]) ** 2, axis=1))))
+    return {"chamfer_mm": float((acc.mean() + comp.mean()) / 2 * 1e3), "normal_err_deg": float(np.median(nerr)),
+            "ate_mm": ate * 1e3, "chamfer_accuracy_mm": float(acc.mean() * 1e3),
+            "chamfer_completeness_mm": float(comp.mean() * 1e3), "_nerr": nerr, "_truth": truth}
+
+
+def default_keyframe_setting() -> str:
+    """Name in :data:`KEYFRAME_SETTINGS` of :class:`~appfusion.fusion.FusionConfig`'s default thresholds."""
+    from appfusion.fusion import FusionConfig
+
+    fc = FusionConfig()
+    for name, (km, kd) in KEYFRAME_SETTINGS.items():
+        if (km, kd) == (fc.keyframe_m, fc.keyframe_deg):
+            return name
+    KEYFRAME_SETTINGS["default"] = (fc.keyframe_m, fc.keyframe_deg)
+    return "default"
+
+
+def keyframe_skip(quick: bool, seed: int, settings=None, repeats: int = 1) -> dict:
+    """The geometry pass on a dense (hand-held 30 fps-like) sequence with each keyframe setting.
+
+    Parameters
+    ----------
+    quick : bool
+        60 frames over 30 degrees (else 120 over 60), 320 x 240; 0.5 degrees and ~4 mm per frame.
+    seed : int
+    settings : dict, optional
+        ``{name: (keyframe_m, keyframe_deg)}``; default :data:`KEYFRAME_SETTINGS`.
+    repeats : int
+        Runs per setting; the CPU time is the smallest (the machine may be shared).
+
+    Returns
+    -------
+    dict
+        ``{name: {"cpu_ms_per_frame", "wall_ms_per_frame", "integrated", "skipped", "lost", "chamfer_mm",
+        "normal_err_deg", "ate_mm"}}`` plus ``"frames"``, ``"degrees_per_frame"``.
+    """
+    from appfusion.fusion import FusionConfig, voxel_size_for_box
+    from appfusion.geometry_pass import GeometryConfig, GeometryPass
+    from appfusion.geometry_synth import make_sequence
+
+    n, sweep = (60, 30.0) if quick else (120, 60.0)
+    seq = make_sequence(n, 320, 240, seed=seed + 7, sweep_deg=sweep, colour_cast=False)
+    out: dict = {"frames": n, "degrees_per_frame": sweep / n, "size": [320, 240]}
+    for name, (km, kd) in (settings or KEYFRAME_SETTINGS).items():
+        best = None
+        for _ in range(repeats):
+            fc = FusionConfig(voxel_size=voxel_size_for_box(seq.side), keyframe_m=km, keyframe_deg=kd)
+            gp = GeometryPass(GeometryConfig(n_points=30_000, seed=seed, fusion=fc, fixed_voxel=True),
+                              meta={"extra": seq.meta_extra})
+            c0, w0 = time.process_time(), time.perf_counter()
+            for f in seq.frames:
+                gp.add_frame(f)
+            cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+            if best is None or cpu < best[0]:
+                best = (cpu, wall, gp)
+        cpu, wall, gp = best
+        err = geometry_errors(seq, gp.result())
+        out[name] = {"keyframe_m": km, "keyframe_deg": kd, "cpu_ms_per_frame": 1e3 * cpu / n,
+                     "wall_ms_per_frame": 1e3 * wall / n, "integrated": gp.fusion._n_integrated,
+                     "skipped": gp.fusion.n_skipped, "lost": sum(s.state == "lost" for s in gp.states),
+                     **{k: v for k, v in err.items() if not k.startswith("_")}}
+    return out
 
 
 def run(ctx) -> dict:
@@ -49,19 +138,9 @@ def run(ctx) -> dict:
     t1 = time.perf_counter()
     res = gp.result()
     t_result = time.perf_counter() - t1
-    ate = float(np.sqrt(np.nanmean(np.sum((res.poses[:, :3, 3] - seq.poses[:, :3, 3]) ** 2, axis=1))))
-
-    truth = o3d.t.geometry.RaycastingScene()
-    truth.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(seq.object_mesh))
-    ours = o3d.t.geometry.RaycastingScene()
-    ours.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(res.mesh))
-    acc = truth.compute_distance(o3d.core.Tensor(
-        np.asarray(res.mesh.sample_points_uniformly(50000).points, np.float32))).numpy()
-    vis = seq.visible_points[seq.visible_points[:, 2] > res.box.z_min].astype(np.float32)
-    comp = ours.compute_distance(o3d.core.Tensor(vis)).numpy()
-    chamfer = float((acc.mean() + comp.mean()) / 2)
+    err = geometry_errors(seq, res)
+    truth, nerr = err["_truth"], err["_nerr"]
     gn = truth.compute_closest_points(o3d.core.Tensor(res.points.astype(np.float32)))["primitive_normals"].numpy()
-    nerr = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", res.normals, gn)), 0, 1)))
     visible = seq.markers_visible.all(1)
     found = np.array([s.markers_complete for s in states])
     detect_rate = float(found[visible].mean()) if visible.any() else None
@@ -103,7 +182,7 @@ def run(ctx) -> dict:
         "ms_per_frame_geometry_pass": {k: round(float(np.median([s.ms.get(k, 0.0) for s in states[1:]])), 2)
                                        for k in ("markers", "prep", "raycast", "track", "integrate")},
         "ms_per_frame_tracking_fusion_640": {k: round(float(np.median(v[1:])), 2) for k, v in parts.items()},
-        "chamfer_accuracy_mm": float(acc.mean() * 1e3), "chamfer_completeness_mm": float(comp.mean() * 1e3),
+        "chamfer_accuracy_mm": err["chamfer_accuracy_mm"], "chamfer_completeness_mm": err["chamfer_completeness_mm"],
         "normal_err_raw_deg": float(np.median(np.degrees(np.arccos(np.clip(
             np.abs(np.einsum("ij,ij->i", res.raw_normals, gn)), 0, 1))))),
         "marker_center_err_mm": float(np.linalg.norm(res.marker_centers - seq.marker_centers, axis=1).max() * 1e3),
@@ -111,9 +190,25 @@ def run(ctx) -> dict:
         "white_err_max": float(max(werr)) if werr else None,
         "source": "appfusion.geometry_synth (own ray-cast sequence; replay/synth to be wired in)",
     }
+    # -- skip: frames that add no new coverage skip fusion -----------------------------------------------
+    default = default_keyframe_setting()
+    settings = KEYFRAME_SETTINGS if not ctx.quick else {"off": KEYFRAME_SETTINGS["off"], default: KEYFRAME_SETTINGS[default]}
+    kf = keyframe_skip(ctx.quick, ctx.seed, settings, repeats=1 if ctx.quick else 2)
+    off, on = kf["off"], kf[default]
+    saving = 1.0 - on["cpu_ms_per_frame"] / off["cpu_ms_per_frame"]
+    ctx.extra["geometry"]["skip_fusion"] = {**kf, "default": default, "saving": saving,
+                                            "what": "CPU time of GeometryPass.add_frame (markers, tracking, fusion) "
+                                                    "per frame, keyframes at the default setting against off"}
+    if not ctx.quick:
+        ctx.add_sweep("fusion_keyframe", "chamfer_mm", default,
+                      [{"value": k, "ms_per_frame": kf[k]["cpu_ms_per_frame"], "error": kf[k]["chamfer_mm"]}
+                       for k in settings],
+                      note="keyframe thresholds of 'frames that add no new coverage skip fusion'. time = CPU ms "
+                           "per frame of the geometry pass on a 0.5 deg/frame 320x240 sequence; error = chamfer mm")
     return {
-        "ate_mm": ate * 1e3,
-        "chamfer_mm": chamfer * 1e3,
+        "skip_fusion_saving": saving,
+        "ate_mm": err["ate_mm"],
+        "chamfer_mm": err["chamfer_mm"],
         "normal_err_deg": float(np.median(nerr)),
         "marker_detect_rate": detect_rate,
         "white_err": float(np.median(werr)) if werr else None,
