@@ -434,6 +434,12 @@ class EnvMapAccumulator:
         the camera: there the ball shows the camera and the user holding it (paper §4.3: "lighting
         occlusion by the user"). 0 (default) keeps them, as the paper does, relying on the multi-view
         average; 15-20 degrees removes the user's reflection when the views surround the ball.
+    pixel_sigma : float, optional
+        Weight the ``s x s`` sub-rays of a pixel by a Gaussian of this standard deviation (pixels) about
+        the pixel's centre instead of equally (None, a box). The map is the scene blurred twice by a
+        pixel's footprint (the camera integrates over the pixel, the splat spreads it again); a tapered
+        splat (0.3-0.4 px) sharpens edges at almost no cost in noise, narrower ones (0.15 px) sharpen
+        more but leave each texel fewer samples (noisier with few views).
     """
 
     def __init__(self, n: int = 128, rho_mirror: float | np.ndarray = 1.0, min_cos: float = 0.1,
@@ -518,7 +524,8 @@ class EnvMapAccumulator:
         ``rho_mirror`` is added to the texel of the reflected direction ``r = 2 (w_o . n) n - w_o`` with
         weight ``w_o . n`` (skipped below ``min_cos``, and within ``exclude_viewer_deg`` of the direction
         to the camera). Each pixel is split into ``s x s`` sub-rays that carry its value, each with weight
-        ``w_o . n / s^2``, so that the pixel's footprint on the map is covered.
+        ``w_o . n / s^2`` (or ``w_o . n`` times the normalised Gaussian ``pixel_sigma`` weight of its
+        offset), so that the pixel's footprint on the map is covered.
 
         Parameters
         ----------
@@ -534,7 +541,7 @@ class EnvMapAccumulator:
             Sphere radius, metres.
         supersample : int or "auto"
             Sub-rays per pixel side. "auto" picks the smallest ``s`` whose sub-ray spacing in reflected
-            direction at the ball's centre is at most one texel (1..6).
+            direction at the ball's centre is at most half a texel (1..16).
         mask : (H, W) bool, optional
             Pixels allowed to contribute (e.g. not saturated, not the user's hand).
 
@@ -649,10 +656,13 @@ class EnvMapAccumulator:
 
     def _supersample(self, supersample: int | str, dist: float, radius: float, intr: Intrinsics) -> int:
         if supersample == "auto":
-            # reflected-direction step of one pixel at the ball's centre: 2 * (pixel on the ball) / R
+            # reflected-direction step of one pixel at the ball's centre: 2 * (pixel on the ball) / R;
+            # two sub-rays per texel there (fewer alias: each view then hits texels unevenly, measured
+            # 4.9% -> 4.2% median error at 320x240 with 40 views), more towards the rim where the
+            # mapping stretches radially by 1 / (w_o . n)
             step = 2.0 * (dist - radius) / (min(intr.fx, intr.fy) * radius)
             texel = np.sqrt(4.0 * np.pi / (2 * self.n * self.n))
-            return int(np.clip(np.ceil(step / texel), 1, 6))
+            return int(np.clip(np.ceil(2.0 * step / texel), 1, 16))
         s = int(supersample)
         if s < 1 or s > 16:
             raise AppFusionError(f"lighting pass: supersample must be 1..16 or 'auto', got {supersample}")
@@ -670,7 +680,8 @@ class EnvMapAccumulator:
         cov = w > self.min_weight
         rad = np.where(cov[..., None], self._mean.reshape(2, n, n, 3), 0.0).astype(np.float32)
         m = {"rho_mirror": self.rho_mirror.tolist(), "min_cos": self.min_cos,
-             "exclude_viewer_deg": self.exclude_viewer_deg, "n_samples": int(self.n_samples),
+             "exclude_viewer_deg": self.exclude_viewer_deg, "pixel_sigma": self.pixel_sigma,
+             "n_samples": int(self.n_samples),
              "n_views": int(self.n_views), "units": "linear RGB relative to the reference white (paper 4.2)"}
         m.update(meta or {})
         return EnvMap(rad, w.astype(np.float32), cov, np.zeros_like(cov), "marker", m)

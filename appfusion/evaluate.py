@@ -17,7 +17,10 @@ Only evaluation reads ``truth/``; the engine never does. Metrics (names as in ``
   Ward material (rho_s: mean over RGB of the per-channel relative error).
 - ``alpha_sharpest_rel_err``: alpha error of the cluster mapped to the material with the most visible
   IR highlight (largest ``ir_rho_s / alpha^2``); a near-matte material's alpha is hardly determined.
-- ``envmap_median_rel_err``: median relative error over covered, lit texels against the truth map.
+- ``envmap_median_rel_err``: median texel-wise relative error over covered, lit directions the capture can
+  know (not hidden by the support plane) against the truth map divided by the white circles' radiance
+  (the engine's units); ``envmap_energy_rel_err``: the map's total energy over the same directions
+  (:func:`envmap_comparison`).
 - ``relit_rel_rmse``: relative L2 error ``||ours - ref|| / ||ref||`` over the object pixels of the
   scanner's reference renders under its second environment map.
 """
@@ -188,7 +191,10 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
         gt_t, gt_p, _, _ = parse_groundtruth((tdir / "groundtruth.txt").read_text(), tdir / "groundtruth.txt")
         out["ate_mm"] = ate_rmse_mm(poses, np.asarray(timestamps), gt_t, gt_p)
     if result.envmap is not None:
-        out["envmap_median_rel_err"] = envmap_error(result.envmap, tdir)
+        cmp = envmap_comparison(result.envmap, tdir)
+        out["envmap_median_rel_err"] = cmp["median_rel_err"]
+        e = np.asarray(cmp["energy_rel_err"], float)
+        out["envmap_energy_rel_err"] = float(e[np.argmax(np.abs(e))]) if np.isfinite(e).all() else float("nan")
     if relight and (tdir / "references" / "views.json").exists() and len(result.mesh_faces):
         out["relit_rel_rmse"], out["_relit_pairs"] = relit_error(result, tdir, spp=relight_spp)
     return out
@@ -207,18 +213,117 @@ def truth_envmap(tdir: Path, name: str, n: int) -> np.ndarray:
     return oc.latlong_to_sphere(img[..., 2::-1].astype(np.float64), n, sub=4).astype(np.float32)
 
 
-def envmap_error(env: np.ndarray, tdir: Path, covered: np.ndarray | None = None) -> float:
-    """Median texel-wise relative error over covered, lit directions (§4.3 acceptance figure)."""
-    n = env.shape[1]
-    ref = truth_envmap(tdir, "office", n)
-    lum_ref = ref.mean(-1)
-    lum = env.mean(-1)
-    ok = (lum > 0) & (lum_ref > 0.05 * np.median(lum_ref[lum_ref > 0]))
+def envmap_comparison(env: Any, tdir: Path, covered: np.ndarray | None = None, lit_frac: float = 0.05
+                      ) -> dict[str, Any]:
+    """Compare a captured environment map with the scanner's truth (paper §4.3; issue #5).
+
+    Radiometric calibration: the engine's map is in "white units" (every RGB frame divided by the
+    white circles' reference, §4.2, and the mirror's reflectance divided out), so the truth map
+    (absolute radiance, ``truth/envmaps/NAME.exr``) is divided per channel by the white circles' radiance
+    during the environment pass (``truth/markers.json`` ``white_radiance_rgb.environment``, mean of the
+    four circles; else their albedo / pi times their irradiance). Only directions the capture can know
+    are compared: the ball sees the support plane (black paper and circles) where the truth map has
+    the room's floor, so every direction in which some point of the ball sees the plane
+    (``truth/scene.json`` ball and plane: for a ball resting on the plane, the whole lower hemisphere;
+    without them, the lower hemisphere) is left out.
+
+    Parameters
+    ----------
+    env : (2, N, N, 3) array or EnvMap
+        The captured map (marker frame). An EnvMap's ``coverage`` limits the comparison to measured
+        texels; for a bare array texels that are all zero count as not covered.
+    tdir : Path
+        The session's ``truth/`` folder.
+    covered : (2, N, N) bool, optional
+        Further limits the compared texels.
+    lit_frac : float
+        "Lit" texels: truth luminance above this fraction of the median over the known directions.
+
+    Returns
+    -------
+    dict
+        ``median_rel_err`` (median over covered, lit, known texels of ``mean_RGB |est - ref| / mean_RGB
+        ref``), ``p90_rel_err``, ``energy_rel_err`` ((3,) per channel: ``sum est dw / sum ref dw - 1``
+        over all covered known texels), ``n_texels`` (compared, lit), ``known_fraction`` (solid-angle
+        fraction of the sphere the capture can know); NaN figures when the truth lacks a white radiance.
+    """
+    from . import octahedral as oc
+
+    cov_env = getattr(env, "coverage", None)
+    rad = np.asarray(getattr(env, "radiance", env), dtype=np.float64)
+    if rad.ndim != 4 or rad.shape[0] != 2 or rad.shape[3] != 3:
+        raise AppFusionError(f"environment map must have shape (2, N, N, 3), got {rad.shape}")
+    n = rad.shape[1]
+    tdir = Path(tdir)
+    scene = json.loads((tdir / "scene.json").read_text()) if (tdir / "scene.json").exists() else {}
+    name = (scene.get("environment") or {}).get("name", "office")
+    mk = json.loads((tdir / "markers.json").read_text()) if (tdir / "markers.json").exists() else {}
+    if "white_radiance_rgb" in mk:
+        white = np.mean(np.asarray(mk["white_radiance_rgb"]["environment"], float).reshape(-1, 3), axis=0)
+    elif "irradiance_rgb" in mk and "albedo" in mk:
+        E = np.mean(np.asarray(mk["irradiance_rgb"]["environment"], float).reshape(-1, 3), axis=0)
+        white = float(mk["albedo"]) / np.pi * E
+    else:
+        white = None
+    nan = float("nan")
+    if white is None or not np.all(white > 0):
+        return {"median_rel_err": nan, "p90_rel_err": nan, "energy_rel_err": np.full(3, nan), "n_texels": 0,
+                "known_fraction": nan}
+    ref = truth_envmap(tdir, name, n).astype(np.float64) / white
+    d = oc.sphere_directions(n)
+    dw = oc.sphere_solid_angles(n)
+    ball, plane = scene.get("ball"), scene.get("plane")
+    if ball and plane:
+        # directions in which some point of the ball sees the (square) support plane z = 0: tested from the
+        # ball's lowest point, the square grown by the radius (a ball resting on the plane: all z < 0)
+        c = np.asarray(ball["centre_m"], float)
+        r = float(ball.get("radius_m", 0.0))
+        half = float(plane.get("half_size_m", np.inf)) + r
+        h = max(c[2] - r, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -h / d[..., 2]
+        hit = (d[..., 2] < 0) & (np.abs(c[0] + t * d[..., 0]) <= half) & (np.abs(c[1] + t * d[..., 1]) <= half)
+        known = ~hit
+    else:
+        known = d[..., 2] > 0
+    cov = np.ones(known.shape, bool) if cov_env is None else np.asarray(cov_env, bool)
+    if cov_env is None:
+        cov &= rad.max(axis=-1) > 0
     if covered is not None:
-        ok &= covered
-    if not ok.any():
+        cov &= np.asarray(covered, bool)
+    lum_ref = ref.mean(-1)
+    lit = lum_ref > lit_frac * np.median(lum_ref[known])
+    m = cov & known & lit
+    mc = cov & known
+    energy = ((rad[mc] * dw[mc][:, None]).sum(0) / np.maximum((ref[mc] * dw[mc][:, None]).sum(0), 1e-300) - 1.0
+              if mc.any() else np.full(3, nan))
+    if not m.any():
+        return {"median_rel_err": nan, "p90_rel_err": nan, "energy_rel_err": energy, "n_texels": 0,
+                "known_fraction": float(dw[known].sum() / dw.sum())}
+    rel = np.abs(rad[m] - ref[m]).mean(-1) / lum_ref[m]
+    return {"median_rel_err": float(np.median(rel)), "p90_rel_err": float(np.percentile(rel, 90)),
+            "energy_rel_err": energy, "n_texels": int(m.sum()), "known_fraction": float(dw[known].sum() / dw.sum())}
+
+
+def envmap_error(env: Any, tdir: Path, covered: np.ndarray | None = None) -> float:
+    """Median texel-wise relative error over covered, lit directions after radiometric calibration
+    (§4.3 acceptance figure, issue #5 goal 5%).
+
+    Calibration = the white circles' radiance (the engine's map is relative to the reference white of
+    §4.2): the truth map is divided by it per channel. Directions the capture cannot know (those the
+    support plane hides from the ball) are left out. See :func:`envmap_comparison`.
+    """
+    return envmap_comparison(env, tdir, covered)["median_rel_err"]
+
+
+def envmap_energy_rel_err(env: Any, tdir: Path, covered: np.ndarray | None = None) -> float:
+    """Relative error of the map's total energy ``sum L dw`` over the covered known directions, after the
+    same radiometric calibration as :func:`envmap_error`: the per-channel error largest in magnitude,
+    signed (issue #5 goal: within 3%)."""
+    e = np.asarray(envmap_comparison(env, tdir, covered)["energy_rel_err"], float)
+    if not np.isfinite(e).all():
         return float("nan")
-    return float(np.median(np.abs(lum[ok] - lum_ref[ok]) / lum_ref[ok]))
+    return float(e[np.argmax(np.abs(e))])
 
 
 def relit_error(result: ScanResult, tdir: Path, spp: int = 64, env_n: int = 256):

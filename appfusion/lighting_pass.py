@@ -85,7 +85,11 @@ class LightingPass:
     mirror_kwargs : dict, optional
         Extra arguments of :func:`~appfusion.sphere_fit.fit_mirror_ball`.
     pixel_sigma : float, optional
-        Pixel kernel of the accumulation (see :class:`~appfusion.envmap.EnvMapAccumulator`).
+        Pixel kernel of the accumulation in pixels (see :class:`~appfusion.envmap.EnvMapAccumulator`);
+        None = the plain box (every sub-ray of a pixel weighs the same). The default 0.35 px tapers the
+        kernel a little: measured on the synthetic Kinect (320x240, office), median texel error 4.2% ->
+        4.2% with 40 views and 3.3% -> 3.2% with 80, 90th percentile 1.03 -> 0.87 and 0.93 -> 0.76
+        (sharper light edges).
     """
 
     def __init__(self, n: int = 128, radius: float | None = None, box: Any = None, rho_mirror: Any = 1.0,
@@ -93,7 +97,7 @@ class LightingPass:
                  max_points: int = 200_000, max_pending: int = 32, fit_kwargs: dict[str, Any] | None = None,
                  exclude_viewer_deg: float = 0.0, per_frame_center: bool = False, emitter: Any = None,
                  mirror_cues: bool | str = "auto", on_plane: bool | str = "auto", plane_z: float = 0.0,
-                 mirror_kwargs: dict[str, Any] | None = None, pixel_sigma: float | None = None):
+                 mirror_kwargs: dict[str, Any] | None = None, pixel_sigma: float | None = 0.35):
         self.radius = None if radius is None else float(radius)
         self.box = box
         self.supersample = supersample
@@ -323,8 +327,7 @@ class LightingPass:
                                 "per_frame_center": self.per_frame_center,
                                 "skipped_frames": self.n_skipped_frames,
                                 "unlocated_frames": self.n_unlocated_frames,
-                                "mirror_cues": bool(self._cues_possible()),
-                                "pixel_sigma": self.acc.pixel_sigma}
+                                "mirror_cues": bool(self._cues_possible())}
         if self.fit_notes:
             info["fit_notes"] = list(self.fit_notes)
         if self.center_shifts_m:

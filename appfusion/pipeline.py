@@ -509,7 +509,16 @@ class ScanRunner:
                    f"emitter model {p.emitter_model}")
 
     def _stage_environment(self, start: int, stop: int) -> None:
-        """§4.3: track the camera on the markers, fit the ball, accumulate the environment map."""
+        """§4.3: track the camera on the markers, fit the ball, accumulate the environment map.
+
+        Two sweeps over the pass. The first tracks every frame on the markers and collects the ball's
+        depth: with the emitter position known (session meta ``emitter_position_m``) the mirror's own
+        cues, its specular spot (points with known normals) and its silhouette (the hole it leaves in
+        the depth against the plane), fitted once over the whole pass
+        (:func:`appfusion.sphere_fit.fit_mirror_ball`; resting on the marker plane when the fit agrees).
+        The second white-balances each RGB frame on the circles (§4.2), re-locates the ball in that
+        frame's depth (its silhouette, against tracking error) and accumulates it.
+        """
         from .envmap import EnvMap
         from .lighting_pass import LightingPass
 
@@ -521,43 +530,55 @@ class ScanRunner:
         cfg = self.config
         geo = _Geometry(self.source.meta, self.config)
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}
-        radius = cfg.ball_radius_m or (meta.get("extra") or {}).get("ball_radius_m")
-        rho_mirror = (meta.get("extra") or {}).get("mirror_ball", {}).get("reflectance", cfg.mirror_reflectance)
+        extra = meta.get("extra") or {}
+        ball = extra.get("mirror_ball") or {}
+        radius = cfg.ball_radius_m or extra.get("ball_radius_m")
+        rho_mirror = ball.get("reflectance", cfg.mirror_reflectance)
+        emitter = meta.get("emitter_position_m")
+        on_plane = getattr(cfg, "ball_on_plane", None) or ball.get("on_plane", "auto")
         light = LightingPass(n=cfg.envmap_n, radius=radius, rho_mirror=rho_mirror,
-                             fit_kwargs={"max_rms_rel": cfg.ball_max_scatter})
-        wb = None
+                             fit_kwargs={"max_rms_rel": cfg.ball_max_scatter}, emitter=emitter,
+                             on_plane=on_plane, per_frame_center=emitter is not None)
         self._publish(force=True, stage="environment", guidance=GUIDANCE["environment"], tracking="ok")
-        no_marker = 0
-        for frame in self._frames(start, stop, "environment"):
+        poses: dict[int, np.ndarray] = {}
+        for frame in self._frames(start, stop, "environment"):           # sweep 1: tracking, ball depth
             track = geo.track(frame)
             if track.pose is None:
                 self._publish(tracking="lost")
                 continue
-            light.box = geo.box
-            if frame.depth is not None and light.sphere is None:
+            poses[frame.index] = track.pose
+            if frame.depth is not None and frame.depth_intrinsics is not None and geo.box is not None:
                 light.add_depth(frame.depth, frame.depth_intrinsics, track.pose, box=geo.box)
-                if light.n_depth_frames >= 10 and light.n_depth_frames % 5 == 0:
-                    try:
-                        light.fit()
-                    except AppFusionError as e:
-                        self._note(f"environment: sphere fit not ready yet ({e})")
-            if frame.rgb is not None:
-                wb = wb or self._white_balancer(geo)
-                b = wb.balance(frame, track.pose)
-                if b.reference is None:
-                    no_marker += 1
-                    continue
-                light.add_frame(frame, pose=track.pose, rgb_linear=b.rgb)
             self._publish(tracking=track.state, markers_visible=track.markers_visible)
+        light.box = geo.box
+        sphere = light.fit()  # raises a clear EstimationError when the ball was never seen well enough
+        for msg in light.fit_notes:
+            self._note(f"environment: {msg}")
+        how = ("specular spot + silhouette" if sphere.method == "mirror" else "sphere fit of the depth points")
+        self._note(f"environment: mirror ball r = {1000 * sphere.radius:.1f} mm"
+                   f"{' (given)' if sphere.radius_fixed else ''} at "
+                   f"({', '.join(f'{1000 * x:.1f}' for x in sphere.center)}) mm, {how}"
+                   f"{', resting on the marker plane' if sphere.on_plane else ''}")
+        wb = None
+        no_marker = 0
+        for frame in self._frames(start, stop, "environment"):           # sweep 2: radiance
+            pose = poses.get(frame.index)
+            if pose is None or frame.rgb is None:
+                continue
+            wb = wb or self._white_balancer(geo)
+            b = wb.balance(frame, pose)
+            if b.reference is None:
+                no_marker += 1
+                continue
+            light.add_frame(frame, pose=pose, rgb_linear=b.rgb)
             if light.n_rgb_frames and light.n_rgb_frames % 10 == 0:
                 env = light.envmap()
                 self._publish(envmap=env.radiance.copy(), env_coverage=env.known.copy())
-        if light.sphere is None:
-            light.fit()  # raises a clear EstimationError when the ball was never seen well enough
-            for rgb, K, pose_rgb, mask in light._pending:
-                light.add_rgb(rgb, K, pose_rgb, mask)
         if no_marker:
             self._note(f"environment: {no_marker} RGB frames had no visible marker and kept the last white reference")
+        if light.n_unlocated_frames:
+            self._note(f"environment: the ball's silhouette was not found in {light.n_unlocated_frames} frames "
+                       "(mapped with the tracked pose)")
         self.env = light.envmap()
         self.env.save_npz(path)
         self._publish(force=True, envmap=self.env.radiance.copy(), env_coverage=self.env.known.copy())

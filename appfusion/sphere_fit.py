@@ -731,15 +731,31 @@ def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.nda
         raise AppFusionError(f"depth pose must be a finite 4x4 matrix, got shape {pose.shape}")
     if box is None:
         raise AppFusionError("mirror-ball cues need the object box (it separates the ball from the background)")
-    z = depth.astype(np.float64)
-    valid = np.isfinite(z) & (z > 0)
-    rays = intrinsics.rays().astype(np.float64)
     Rw, t = pose[:3, :3], pose[:3, 3]
-    pc = rays[valid] * z[valid][:, None]
+    bounds = _box_bounds(box)
+    H, W = depth.shape
+    x0, x1, y0, y1 = 0, W, 0, H
+    if bounds is not None:
+        # only the image rectangle that can show the box (plus a pixel for the neighbours)
+        lo, hi = bounds
+        corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+        cc = (corners - t) @ Rw
+        if (cc[:, 2] > 1e-6).all():
+            u = intrinsics.fx * cc[:, 0] / cc[:, 2] + intrinsics.cx
+            v = intrinsics.fy * cc[:, 1] / cc[:, 2] + intrinsics.cy
+            x0, x1 = int(np.clip(np.floor(u.min()) - 2, 0, W)), int(np.clip(np.ceil(u.max()) + 3, 0, W))
+            y0, y1 = int(np.clip(np.floor(v.min()) - 2, 0, H)), int(np.clip(np.ceil(v.max()) + 3, 0, H))
+    z = np.asarray(depth[y0:y1, x0:x1], dtype=np.float64)
+    valid = np.isfinite(z) & (z > 0)
+    vv, uu = np.nonzero(valid)
+    xr = (uu + x0 - intrinsics.cx) / intrinsics.fx
+    yr = (vv + y0 - intrinsics.cy) / intrinsics.fy
+    zv = z[vv, uu]
+    pc = np.stack([xr * zv, yr * zv, zv], axis=1)
     pw = pc @ Rw.T + t
     inside = in_box(pw, box)
     inbox = np.zeros(z.shape, bool)
-    inbox[valid] = inside
+    inbox[vv[inside], uu[inside]] = True
     bg = valid & ~inbox
     # spot candidates (world point + world bisector normal)
     if emitter is not None and inside.any():
@@ -747,27 +763,29 @@ def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.nda
         spots = np.hstack([pw[inside], nrm])
     else:
         spots = np.empty((0, 6))
-    # silhouette rays
+    # silhouette rays: hole pixel -> background neighbour towards the emitter
     inv = ~valid
-    dist_bg = np.where(bg, z * np.linalg.norm(rays, axis=-1), np.nan)   # range of background pixels
     out = []
-    H, W = z.shape
+    h, w = z.shape
     for du, dv in _step_directions(emitter):
-        ys, ye = max(0, -dv), H - max(0, dv)
-        xs, xe = max(0, -du), W - max(0, du)
+        ys, ye = max(0, -dv), h - max(0, dv)
+        xs, xe = max(0, -du), w - max(0, du)
         a = inv[ys:ye, xs:xe] & bg[ys + dv:ye + dv, xs + du:xe + du]
-        vv, uu = np.nonzero(a)
-        if not len(vv):
+        py, px = np.nonzero(a)
+        if not len(py):
             continue
-        vv, uu = vv + ys, uu + xs
-        d = 0.5 * (rays[vv, uu] + rays[vv + dv, uu + du])
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        out.append(np.hstack([d, dist_bg[vv + dv, uu + du][:, None]]))
+        py, px = py + ys, px + xs
+        um = px + x0 + 0.5 * du                                  # midpoint of the two pixels
+        vm = py + y0 + 0.5 * dv
+        d = np.stack([(um - intrinsics.cx) / intrinsics.fx, (vm - intrinsics.cy) / intrinsics.fy,
+                      np.ones(len(um))], axis=1)
+        zb = z[py + dv, px + du]                                 # background depth (z) beside the hole
+        out.append(np.hstack([d, zb[:, None]]))
     if out:
         r = np.concatenate(out)
-        dw = r[:, :3] @ Rw.T
-        far = r[:, 3]
-        bounds = _box_bounds(box)
+        far = r[:, 3] * np.linalg.norm(r[:, :3], axis=1)         # range of the background along the ray
+        d = r[:, :3] / np.linalg.norm(r[:, :3], axis=1, keepdims=True)
+        dw = d @ Rw.T
         if bounds is not None:
             lo, hi = bounds
             with np.errstate(divide="ignore", invalid="ignore"):

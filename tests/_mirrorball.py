@@ -176,3 +176,57 @@ def lit(gt: np.ndarray, frac: float = 0.05) -> np.ndarray:
     """Texels whose ground-truth luminance exceeds ``frac`` of the median (the 'lit' directions)."""
     lum = gt.mean(-1)
     return lum > frac * np.median(lum)
+
+
+#: the depth camera's emitter in its own frame (Kinect v1: 7.5 cm to the right of the IR camera)
+EMITTER = np.array([0.075, 0.0, 0.0])
+
+
+def render_mirror_depth(pose, intr: Intrinsics = INTR, emitter=EMITTER, spot_deg: float = 5.0, sigma: float = 0.003,
+                        plane_sigma: float = 0.0015, outliers: float = 0.03, outlier_sigma: float = 0.02,
+                        center=CENTER, radius=RADIUS, seed: int = 0) -> np.ndarray:
+    """Depth (metres, NaN invalid) of a MIRROR ball on the plane z = 0 as a structured-light camera sees it.
+
+    The ball returns depth only where it reflects the emitter into the camera: where its normal is within
+    ``spot_deg`` of the bisector of the directions to the camera and to the emitter (noise ``sigma``);
+    ``outliers`` of its other pixels return a depth behind the surface by ``|N(0, outlier_sigma)|``; the
+    rest of the ball is invalid. The plane returns depth (noise ``plane_sigma``) except where the ball
+    hides it from the emitter (its shadow beside the ball, away from the emitter).
+    """
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(float)
+    dc = _pixel_rays(intr, u, v)
+    dw = dc @ pose[:3, :3].T
+    o = pose[:3, 3]
+    center = np.asarray(center, float)
+    hit, t = _intersect(dw, o, center, radius)
+    pw = o + t[..., None] * dw
+    nrm = (pw - center) / radius
+    pc = t[..., None] * dc                                     # hit point in the camera frame
+    to_cam = -pc / np.linalg.norm(pc, axis=-1, keepdims=True)
+    to_em = np.asarray(emitter, float) - pc
+    to_em /= np.linalg.norm(to_em, axis=-1, keepdims=True)
+    h = to_cam + to_em
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    n_cam = nrm @ pose[:3, :3]
+    spot = hit & ((n_cam * h).sum(-1) >= np.cos(np.radians(spot_deg)))
+    z = np.full(u.shape, np.nan)
+    z[spot] = (t * dc[..., 2])[spot] + rng.normal(size=int(spot.sum())) * sigma
+    out = hit & ~spot & (rng.random(u.shape) < outliers)
+    z[out] = (t * dc[..., 2])[out] + np.abs(rng.normal(size=int(out.sum())) * outlier_sigma)
+    # the plane, where the ball does not cover it, lit by the emitter
+    tp = -o[2] / np.where(dw[..., 2] < -1e-9, dw[..., 2], -1e-9)
+    pl = ~hit & (dw[..., 2] < -1e-9)
+    P = o + tp[..., None] * dw
+    e_w = pose[:3, :3] @ np.asarray(emitter, float) + o
+    seg = e_w - P
+    L = np.linalg.norm(seg, axis=-1)
+    sd = seg / L[..., None]
+    oc = P - center                                            # per-pixel origins: inline ray-sphere test
+    b = (sd * oc).sum(-1)
+    disc = b * b - ((oc * oc).sum(-1) - radius * radius)
+    ts = -b - np.sqrt(np.maximum(disc, 0.0))
+    shadow = (disc > 0) & (ts > 0) & (ts < L)
+    ok = pl & ~shadow
+    z[ok] = (tp * dc[..., 2])[ok] + rng.normal(size=int(ok.sum())) * plane_sigma
+    return z.astype(np.float32)

@@ -410,7 +410,7 @@ def test_lighting_pass_order_and_errors():
 
 
 def test_add_frame_holds_rgb_until_fit():
-    lp = LightingPass(n=64, box=BOX, radius=RADIUS)
+    lp = LightingPass(n=64, box=BOX, radius=RADIUS, min_cos=0.6)     # grazing views skipped: holes to fill
     for i, p in enumerate(orbit(4, seed=8)):
         prgb = p @ invert_pose(DEPTH_TO_RGB)
         fr = Frame(index=i, timestamp=i / 30, depth=render_depth(p, seed=i), rgb=render_rgb(prgb, seed=i),
