@@ -862,6 +862,49 @@ def _mirror_starts(spots: np.ndarray, rays: np.ndarray, radius: float | None, r_
     return out
 
 
+def _cone_start(rays: np.ndarray, r_range: tuple[float, float], radius: float | None
+                ) -> tuple[np.ndarray, float] | None:
+    """A start from silhouette rays alone: per view (rays sharing an origin) the cone of tangent rays,
+    ``d . a = cos(alpha)`` (linear in ``a / cos(alpha)``), whose axis passes through the centre; the axes
+    of all views meet at the centre (least squares), and ``R = |c - o| sin(alpha)``."""
+    if len(rays) < 8:
+        return None
+    _, inv = np.unique(np.round(rays[:, :3], 9), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    axes, origins, sines = [], [], []
+    for g in range(int(inv.max()) + 1):
+        d = rays[inv == g, 3:6]
+        if len(d) < 6:
+            continue
+        keep = np.ones(len(d), bool)
+        w = None
+        for _ in range(3):                      # refit without the rays far from the cone
+            w, *_ = np.linalg.lstsq(d[keep], np.ones(int(keep.sum())), rcond=None)
+            r = d @ w - 1.0
+            mad = 1.4826 * np.median(np.abs(r[keep])) + 1e-9
+            keep = np.abs(r) < 3.0 * mad
+            if keep.sum() < 6:
+                break
+        nw = float(np.linalg.norm(w)) if w is not None else 0.0
+        if not np.isfinite(nw) or nw <= 1.0:
+            continue
+        axes.append(w / nw)
+        origins.append(rays[inv == g][0, :3])
+        sines.append(np.sqrt(max(1.0 - 1.0 / nw ** 2, 0.0)))
+    if len(axes) < 2:
+        return None
+    A, O = np.array(axes), np.array(origins)
+    M = np.eye(3)[None] - A[:, :, None] * A[:, None, :]        # projectors orthogonal to each axis
+    lhs, rhs = M.sum(axis=0), np.einsum("kij,kj->i", M, O)
+    if np.linalg.cond(lhs) > 1e8:
+        return None
+    c = np.linalg.solve(lhs, rhs)
+    R = float(radius) if radius is not None else float(np.median(np.linalg.norm(c - O, axis=1) * np.array(sines)))
+    if not (np.isfinite(c).all() and np.isfinite(R) and r_range[0] <= R <= r_range[1]):
+        return None
+    return c, R
+
+
 def _mirror_lsq(spots: np.ndarray, rays: np.ndarray, c0: np.ndarray, r0: float, radius: float | None,
                 plane_z: float | None, s_spot: float, f_scale: float = 2.0
                 ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
@@ -999,6 +1042,9 @@ def fit_mirror_ball(spots: Any, rays: Any, radius: float | None = None, *, on_pl
         cands = [(c0, float(radius if radius is not None else start[1]))]
     else:
         cands = _mirror_starts(S, Q, radius, radius_range_m, tau_s, tau_r, n_hypotheses, rng)
+        cone = _cone_start(Q, radius_range_m, radius)
+        if cone is not None:
+            cands.append(cone)
         if len(S) >= 10:
             try:
                 g = fit_sphere(S[:, :3], radius=radius, max_rms_rel=0.3, min_inlier_fraction=0.05,
@@ -1106,7 +1152,7 @@ def fit_mirror_ball(spots: Any, rays: Any, radius: float | None = None, *, on_pl
 
 def locate_ball(rays: Any, center: Any, radius: float, band_m: float = 0.006, min_rays: int = 8,
                 lateral_sigma_m: float = 0.005, range_sigma_m: float = 0.002,
-                max_shift_m: float = 0.01) -> np.ndarray | None:
+                max_shift_m: float = 0.015) -> np.ndarray | None:
     """Re-locate a ball of known radius in ONE frame from its silhouette rays (lighting pass, §4.3).
 
     The tracked pose puts the ball where the fitted centre projects; a pose error of 1-2 mm moves the
@@ -1124,7 +1170,8 @@ def locate_ball(rays: Any, center: Any, radius: float, band_m: float = 0.006, mi
     radius : float
         Ball radius, metres.
     band_m : float
-        Only rays within this distance of the predicted sphere's silhouette are used.
+        Only rays within this distance of the sphere's silhouette are used (first within three times it
+        of the prediction, then within it of the first estimate).
     min_rays : int
         Fewer rays in the band give None.
     lateral_sigma_m, range_sigma_m : float
@@ -1142,7 +1189,6 @@ def locate_ball(rays: Any, center: Any, radius: float, band_m: float = 0.006, mi
         raise AppFusionError(f"locate_ball: centre, radius and band must be finite and positive "
                              f"(got {c0.tolist()}, {radius}, {band_m})")
     Q = Q[np.isfinite(Q).all(axis=1)]
-    Q = Q[np.abs(_ray_residuals(c0, radius, Q)) < band_m] if len(Q) else Q
     if len(Q) < max(int(min_rays), 3):
         return None
     o = Q[:, :3].mean(axis=0)
@@ -1155,15 +1201,22 @@ def locate_ball(rays: Any, center: Any, radius: float, band_m: float = 0.006, mi
     e1 /= np.linalg.norm(e1)
     B = np.stack([e1, np.cross(e3, e1), e3], axis=1)
     prior = np.array([lateral_sigma_m, lateral_sigma_m, range_sigma_m])
-    sig = _ray_sigma(c0, Q)
-
-    def fun(x):
+    x = np.zeros(3)
+    # two rounds: rays within 3 bands of the prediction (catches a prediction off by a band), then
+    # within one band of the first estimate
+    for band in (3.0 * band_m, band_m):
         c = c0 + B @ x
-        return np.concatenate([_ray_residuals(c, radius, Q) / sig, x / prior])
+        use = Q[np.abs(_ray_residuals(c, radius, Q)) < band]
+        if len(use) < max(int(min_rays), 3):
+            return None
+        sig = _ray_sigma(c, use)
 
-    res = least_squares(fun, np.zeros(3), loss="soft_l1", f_scale=2.0, method="trf", x_scale=np.full(3, 1e-3),
-                        max_nfev=50)
-    c = c0 + B @ res.x
+        def fun(x, use=use, sig=sig):
+            return np.concatenate([_ray_residuals(c0 + B @ x, radius, use) / sig, x / prior])
+
+        x = least_squares(fun, x, loss="soft_l1", f_scale=2.0, method="trf", x_scale=np.full(3, 1e-3),
+                          max_nfev=50).x
+    c = c0 + B @ x
     if not np.isfinite(c).all() or np.linalg.norm(c - c0) > max_shift_m:
         return None
     return c

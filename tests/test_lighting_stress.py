@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from _mirrorball import (BOX, CENTER, DEPTH_TO_RGB, INTR, RADIUS, gt_map, lit, look_at, orbit, rel_errors,
-                         render_depth, render_rgb)
+from _mirrorball import (BOX, CENTER, DEPTH_TO_RGB, EMITTER, INTR, RADIUS, gt_map, lit, look_at, orbit, rel_errors,
+                         render_depth, render_mirror_depth, render_rgb)
 from appfusion.envmap import EnvMapAccumulator
 from appfusion.errors import AppFusionError, EstimationError
 from appfusion.frame import Frame, invert_pose, linear_to_srgb, make_pose, srgb_to_linear
@@ -66,6 +66,59 @@ def test_tracking_error_and_per_frame_centering(gt):
     assert out[False][1] > 0.15, out          # p90 error: edges smeared by several degrees
     med, p90, energy = out[True]
     assert med <= 0.05 and p90 < 0.05 and energy < 0.03, out
+
+
+def test_mirror_depth_pass_with_tracking_error(gt):
+    """The real thing: a mirror's depth (only its specular spot, wrong returns behind it, the emitter's shadow
+    beside it) with tracked poses 2 mm / 0.3 deg off. The mirror cues fit the ball over the whole pass and
+    each frame's silhouette re-locates it against the camera."""
+    rng = np.random.default_rng(5)
+    frames = []
+    for i, p in enumerate(orbit(16, seed=31)):
+        prgb = p @ invert_pose(DEPTH_TO_RGB)
+        frames.append(Frame(index=i, timestamp=i / 30, depth=render_mirror_depth(p, seed=i),
+                            rgb=render_rgb(prgb, seed=i), rgb_encoding="linear", depth_intrinsics=INTR,
+                            rgb_intrinsics=INTR, depth_to_rgb=DEPTH_TO_RGB, pose=_noisy(p, rng, 0.002, 0.3)))
+    out = {}
+    for pfc in (False, True):
+        lp = LightingPass(n=N, box=BOX, emitter=EMITTER, per_frame_center=pfc)
+        for f in frames:
+            lp.add_depth(f.depth, INTR, f.pose)
+        fit = lp.fit()
+        assert fit.method == "mirror" and fit.on_plane, fit
+        # each frame's pose moves the ball by ~4 mm (2 mm + 0.3 deg at 0.65 m): the fit averages 16 of them
+        assert np.linalg.norm(fit.center - CENTER) < 0.003 and abs(fit.radius - RADIUS) / RADIUS < 0.03, fit
+        for f in frames:
+            lp.add_frame(f)
+        em = lp.envmap()
+        assert lp.n_rgb_frames == 16 and em.meta["sphere"]["method"] == "mirror"
+        out[pfc] = _score(em, gt)
+        if pfc:
+            assert em.meta["unlocated_frames"] == 0 and em.meta["per_frame_center_shift_mm"]["frames"] == 16
+    assert out[False][1] > 1.5 * out[True][1], out       # p90: tracking error smears the edges
+    med, p90, energy = out[True]
+    assert med <= 0.05 and energy < 0.03, out
+
+
+def test_mirror_cues_fall_back_to_the_plain_fit():
+    """A sensor that does return depth all over the ball (a painted ball, a matte test sphere) but no
+    silhouette: 'auto' notes the failed mirror fit and fits the points; True refuses."""
+    poses = orbit(4, seed=32)
+    lp = LightingPass(n=16, box=BOX, emitter=EMITTER, mirror_kwargs={"min_spots": 10 ** 6, "min_rays": 10 ** 6})
+    for i, p in enumerate(poses):
+        lp.add_depth(render_depth(p, seed=i, hole=0), INTR, p)
+    f = lp.fit()
+    assert f.method == "geometric" and lp.fit_notes and "mirror-ball fit failed" in lp.fit_notes[0]
+    assert np.linalg.norm(f.center - CENTER) < 0.002
+    strict = LightingPass(n=16, box=BOX, emitter=EMITTER, mirror_cues=True,
+                          mirror_kwargs={"min_spots": 10 ** 6, "min_rays": 10 ** 6})
+    strict.add_depth(render_depth(poses[0], seed=0, hole=0), INTR, poses[0])
+    with pytest.raises(EstimationError, match="too few cues"):
+        strict.fit()
+    with pytest.raises(AppFusionError, match="emitter"):
+        LightingPass(n=16, box=BOX, mirror_cues=True)
+    with pytest.raises(AppFusionError, match="emitter"):
+        LightingPass(n=16, box=BOX, emitter=[0.075, 0.0])
 
 
 def test_refine_center_accuracy_and_refusals():

@@ -2,7 +2,9 @@
 
 Depth comes from the independent generator in tests/_mirrorball.py: an analytic ray-sphere render of a ball
 on a support plane seen from orbiting cameras, with depth noise along the ray, missing regions (no return
-at grazing angles, random drop-outs, a hole), outlier depths on the ball and the support plane around it.
+at grazing angles, random drop-outs, a hole), outlier depths on the ball and the support plane around it;
+and, for the mirror-ball fit, the depth a structured-light camera really gets from a mirror (only the
+specular spot, wrong returns behind the surface, the emitter's shadow beside the ball).
 """
 
 from __future__ import annotations
@@ -12,9 +14,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from _mirrorball import BOX, CENTER, INTR, RADIUS, orbit, render_depth
+from _mirrorball import BOX, CENTER, EMITTER, INTR, RADIUS, orbit, render_depth, render_mirror_depth
 from appfusion.errors import AppFusionError, EstimationError
-from appfusion.sphere_fit import (PointReservoir, algebraic_fit, fit_sphere, fit_sphere_from_depth, in_box,
+from appfusion.frame import Intrinsics
+from appfusion.sphere_fit import (PointReservoir, algebraic_fit, ball_cues_from_depth, bisector_normals,
+                                  fit_mirror_ball, fit_sphere, fit_sphere_from_depth, in_box, locate_ball,
                                   points_from_depth)
 
 
@@ -238,3 +242,143 @@ def test_reservoir_is_uniform_and_bounded():
     assert counts.min() >= 5 and counts.max() <= 40 and abs(counts[:25].sum() - 500) < 80
     with pytest.raises(AppFusionError):
         PointReservoir(0)
+
+
+# -- the mirror ball: specular spot and silhouette ------------------------------------------------------
+
+SMALL = Intrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
+
+
+@pytest.fixture(scope="module")
+def mirror_views():
+    poses = orbit(12, seed=21)
+    depths = [render_mirror_depth(p, intr=SMALL, seed=i) for i, p in enumerate(poses)]
+    cues = [ball_cues_from_depth(d, SMALL, p, BOX, EMITTER) for d, p in zip(depths, poses)]
+    spots = np.concatenate([c.spots for c in cues])
+    rays = np.concatenate([c.rays for c in cues])
+    return poses, depths, cues, spots, rays
+
+
+def test_bisector_normal_reflects_the_emitter_into_the_camera():
+    rng = np.random.default_rng(0)
+    p = rng.uniform([-0.3, -0.3, 0.4], [0.3, 0.3, 2.0], (500, 3))
+    n = bisector_normals(p, EMITTER)
+    to_em = EMITTER - p
+    to_em /= np.linalg.norm(to_em, axis=1, keepdims=True)
+    refl = 2 * (to_em * n).sum(1, keepdims=True) * n - to_em
+    assert np.allclose(refl, -p / np.linalg.norm(p, axis=1, keepdims=True), atol=1e-12)
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
+
+
+def test_mirror_cues_are_tangent_rays_and_spot_points(mirror_views):
+    poses, depths, cues, spots, rays = mirror_views
+    dist = np.linalg.norm(np.cross(CENTER - rays[:, :3], rays[:, 3:6]), axis=1) - RADIUS
+    pix = np.linalg.norm(CENTER - rays[:, :3], axis=1) / SMALL.fx       # one pixel at the ball, metres
+    assert len(rays) > 300 and np.mean(np.abs(dist) < pix) > 0.97       # the hole's edge is the silhouette
+    # on all sides of the hole (no emitter given) part of the edge is the ball's shadow on the plane
+    allside = np.concatenate([ball_cues_from_depth(d, SMALL, p, BOX, None).rays for d, p in zip(depths, poses)])
+    d2 = np.linalg.norm(np.cross(CENTER - allside[:, :3], allside[:, 3:6]), axis=1) - RADIUS
+    assert np.mean(d2 > 2 * np.median(pix)) > 0.15
+    # spot candidates: a minority on the model p = c + R n (the spot), the rest wrong returns
+    e = np.linalg.norm(spots[:, :3] - CENTER - RADIUS * spots[:, 3:], axis=1)
+    assert 0.1 < np.mean(e < 0.006) < 0.6
+    with pytest.raises(AppFusionError, match="object box"):
+        ball_cues_from_depth(depths[0], SMALL, poses[0], None, EMITTER)
+
+
+def test_mirror_fit_recovers_the_ball_where_a_plain_fit_fails(mirror_views):
+    poses, depths, cues, spots, rays = mirror_views
+    f = fit_mirror_ball(spots, rays)
+    assert f.method == "mirror" and f.on_plane and abs(f.plane_gap_m) < 0.001
+    assert np.linalg.norm(f.center - CENTER) < 0.0005 and abs(f.radius - RADIUS) / RADIUS < 0.01, f
+    assert f.n_spots > 50 and f.n_rays > 300 and np.isfinite([f.radius_std_m, f.center_std_m, f.rms_m]).all()
+    assert f.to_json()["on_plane"] is True
+    free = fit_mirror_ball(spots, rays, on_plane=False)
+    assert not free.on_plane and np.linalg.norm(free.center - CENTER) < 0.001
+    # the paper's plain least-squares sphere on the same depth: the wrong returns behind the mirror pull
+    # it inwards (or it finds no sphere at all)
+    pts = np.concatenate([points_from_depth(d, SMALL, p, BOX) for d, p in zip(depths, poses)])
+    try:
+        g = fit_sphere(pts, max_rms_rel=0.3)
+        assert abs(g.radius - RADIUS) / RADIUS > 0.03, g
+    except EstimationError:
+        pass
+
+
+def test_each_cue_alone_and_a_known_radius(mirror_views):
+    _, _, _, spots, rays = mirror_views
+    a = fit_mirror_ball(spots, rays[:0], on_plane=False)
+    assert a.n_rays == 0 and np.linalg.norm(a.center - CENTER) < 0.002 and abs(a.radius - RADIUS) < 0.002, a
+    b = fit_mirror_ball(spots[:0], rays, on_plane=False)
+    assert b.n_spots == 0 and np.linalg.norm(b.center - CENTER) < 0.001 and abs(b.radius - RADIUS) < 0.0005, b
+    c = fit_mirror_ball(spots, rays, radius=0.051)
+    assert c.radius_fixed and c.radius == 0.051 and c.radius_std_m == 0.0
+
+
+def test_resting_on_the_plane_only_when_the_data_agree():
+    """A ball on a 2 cm stand is not snapped onto the plane by 'auto'; forcing it does."""
+    c_up = CENTER + [0.0, 0.0, 0.02]
+    poses = orbit(8, seed=22)
+    cues = [ball_cues_from_depth(render_mirror_depth(p, intr=SMALL, center=c_up, seed=i), SMALL, p, BOX, EMITTER)
+            for i, p in enumerate(poses)]
+    S, Q = np.concatenate([c.spots for c in cues]), np.concatenate([c.rays for c in cues])
+    f = fit_mirror_ball(S, Q)
+    assert not f.on_plane and abs(f.plane_gap_m - 0.02) < 0.001 and np.linalg.norm(f.center - c_up) < 0.001
+    g = fit_mirror_ball(S, Q, on_plane=True)
+    assert g.on_plane and g.center[2] == pytest.approx(g.radius, abs=1e-12)
+
+
+def test_locate_ball_from_the_silhouette(mirror_views):
+    poses, _, cues, _, _ = mirror_views
+    k = 3
+    rays = cues[k].rays
+    los = CENTER - poses[k][:3, 3]
+    los /= np.linalg.norm(los)
+    for off in ([0.003, -0.002, 0.001], [-0.004, 0.0, -0.003]):
+        c = locate_ball(rays, CENTER + off, RADIUS)
+        err = c - CENTER
+        lateral = err - (err @ los) * los                     # what matters for the map
+        assert np.linalg.norm(lateral) < 0.0003 and np.linalg.norm(err) < 0.004, (off, err)
+    assert locate_ball(rays[:5], CENTER, RADIUS) is None                   # too few rays
+    assert locate_ball(rays, CENTER + [0.05, 0, 0], RADIUS) is None        # nothing near the prediction
+    assert locate_ball(np.empty((0, 7)), CENTER, RADIUS) is None
+    with pytest.raises(AppFusionError, match="finite"):
+        locate_ball(rays, [np.nan, 0, 0], RADIUS)
+
+
+def test_mirror_fit_errors():
+    with pytest.raises(EstimationError, match="too few cues"):
+        fit_mirror_ball(np.zeros((3, 6)), np.zeros((5, 7)))
+    rng = np.random.default_rng(3)
+    junk_s = np.hstack([rng.uniform(-0.1, 0.1, (400, 3)), rng.normal(size=(400, 3))])
+    junk_s[:, 3:] /= np.linalg.norm(junk_s[:, 3:], axis=1, keepdims=True)
+    junk_r = np.hstack([rng.uniform(-1, 1, (200, 3)), rng.normal(size=(200, 3)), np.full((200, 1), 0.004)])
+    junk_r[:, 3:6] /= np.linalg.norm(junk_r[:, 3:6], axis=1, keepdims=True)
+    _assert_error_or_finite(lambda: fit_mirror_ball(junk_s, junk_r))
+    with pytest.raises(AppFusionError, match="on_plane"):
+        fit_mirror_ball(junk_s, junk_r, on_plane="maybe")
+    with pytest.raises(AppFusionError, match="radius"):
+        fit_mirror_ball(junk_s, junk_r, radius=-0.01)
+    with pytest.raises(EstimationError, match="metres"):
+        fit_mirror_ball(junk_s * 1e6, junk_r)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n_s=st.integers(0, 80), n_r=st.integers(0, 80), scale=st.floats(1e-3, 10.0), seed=st.integers(0, 2**31))
+def test_mirror_fit_never_nan(n_s, n_r, scale, seed):
+    rng = np.random.default_rng(seed)
+    S = rng.normal(size=(n_s, 6)) * scale
+    Q = rng.normal(size=(n_r, 7)) * scale
+    if n_s:
+        S[rng.random(n_s) < 0.1, 0] = np.nan
+    _assert_error_or_finite(lambda: fit_mirror_ball(S, Q, min_spots=5, min_rays=5))
+
+
+def test_reservoir_keeps_rows_with_attributes():
+    r = PointReservoir(capacity=100, seed=2, dim=6)
+    rows = np.arange(1200, dtype=float).reshape(-1, 6)
+    r.add(rows)
+    assert r.points.shape == (100, 6)
+    assert np.all(r.points[:, 1:] - r.points[:, :1] == np.arange(1, 6))   # rows kept whole
+    with pytest.raises(AppFusionError, match="column"):
+        PointReservoir(10, dim=0)
