@@ -74,6 +74,7 @@ for those four alphas; the build time is in ``docs/rgb-pass.md``.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -438,6 +439,72 @@ def mirror_params(normals: np.ndarray, w_o: np.ndarray):
     return r, co, beta
 
 
+class _NodeBuilder:
+    """Everything needed to compute S at any subset of one alpha's mirror nodes (see
+    :meth:`DoubleProductTables.add_alpha`); a lazy table keeps it until all its nodes are built."""
+
+    def __init__(self, nodes, signs, dirs32, dw, Bd, res, ls, keep, sampler, chunk, threads):
+        self.nodes, self.signs = nodes, signs
+        self.dx, self.dy, self.dz = (np.ascontiguousarray(dirs32[:, i]) for i in range(3))
+        self.dw, self.Bd = dw, Bd
+        self.res, self.ls, self.keep = res, ls, keep
+        self.R2 = res * res
+        self.sampler, self.chunk, self.threads = sampler, chunk, threads
+        self.timing = np.zeros(4)          # sample, haar, keep, dot (CPU seconds summed over blocks)
+
+    def _block(self, idx: np.ndarray) -> np.ndarray:
+        """S sqrt(cos theta_o) (c, n_slices, 3) float32 >= 0 at nodes ``idx`` (c,)."""
+        c, R2, ls, res, keep = len(idx), self.R2, self.ls, self.res, self.keep
+        ta = time.perf_counter()
+        F = signed_frames(self.nodes[idx], self.signs[idx]).astype(np.float32)     # (c, 3, 3)
+        # world directions F^T w' of the block's texels, one component plane at a time
+        comp = [self.dx[None, :] * F[:, 0, i, None] + self.dy[None, :] * F[:, 1, i, None]
+                + self.dz[None, :] * F[:, 2, i, None] for i in range(3)]
+        L = self.sampler.components(*comp)                     # (c, R^2 ls^2, 3): env at F^T w'
+        L *= self.dw[None, :, None]
+        if ls > 1:
+            L = L.reshape(c, R2, ls * ls, 3).sum(axis=2)
+        L = np.ascontiguousarray(L.reshape(c, R2, 3).transpose(0, 2, 1))      # (c, 3, R^2)
+        tb = tc = time.perf_counter()
+        if keep < R2:
+            # non-linear approximation of each node's lighting (NRH03): Haar, keep the largest
+            C = haar2(L.reshape(c * 3, res, res)).reshape(c, 3, R2)
+            tc = time.perf_counter()
+            mag = np.abs(C).sum(axis=1)                                           # (c, R^2)
+            thr = np.partition(mag, R2 - keep, axis=1)[:, R2 - keep]
+            C *= (mag >= thr[:, None])[:, None, :]
+            L = C
+        td = time.perf_counter()
+        # the double products of all (node, slice) pairs of the block at once (dropped lighting
+        # coefficients are zeros): one BLAS product
+        v = (L.reshape(c * 3, R2) @ self.Bd).reshape(c, 3, -1).transpose(0, 2, 1)
+        # S >= 0; the kept Haar coefficients of a slice can ring slightly below 0 where the lighting is dark
+        v = np.maximum(v, 0.0)
+        te = time.perf_counter()
+        self.timing += (tb - ta, tc - tb, td - tc, te - td)
+        return v
+
+    def compute(self, idx: np.ndarray, out: np.ndarray, scale: float) -> None:
+        """Compute nodes ``idx`` into ``out`` (N, n_slices, 3) float16, in units of ``scale``, in blocks
+        of ``chunk`` nodes, ``threads`` blocks at a time."""
+        inv = np.float32(1.0 / scale)
+
+        def block(s0: int) -> None:
+            sel = idx[s0:s0 + self.chunk]
+            v = self._block(sel)
+            v *= inv
+            np.minimum(v, np.float32(65000.0), out=v)            # float16 range (scale has 4x headroom)
+            out[sel] = v.astype(np.float16)
+
+        starts = range(0, len(idx), self.chunk)
+        if self.threads > 1 and len(starts) > 1:
+            with ThreadPoolExecutor(self.threads) as ex:
+                list(ex.map(block, starts))
+        else:
+            for s0 in starts:
+                block(s0)
+
+
 @dataclass
 class AlphaTable:
     """The S table of one roughness: ``S sqrt(cos theta_o)`` on (r node, theta node, beta node), RGB.
@@ -456,8 +523,13 @@ class AlphaTable:
         The table, in units of ``scale`` (so that bright environments do not overflow float16).
     brdf : SparseCoeffs
         The BRDF tables: kept Haar coefficients of the n_theta * n_beta kernel slices.
+    scale : float
+        Unit of ``values``: an upper bound of ``S sqrt(cos theta_o)`` (largest radiance times the
+        largest kernel integral) / 16384.
     stats : dict
-        Build timings and sizes.
+        Build timings and sizes (``nodes_built``: mirror nodes computed so far).
+    built : (2 m^2,) bool or None
+        Lazy tables: which mirror nodes are computed (None: all are).
     """
 
     alpha: float
@@ -469,10 +541,55 @@ class AlphaTable:
     brdf: SparseCoeffs
     scale: float = 1.0
     stats: dict = field(default_factory=dict)
+    built: np.ndarray | None = None
+    builder: _NodeBuilder | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        self._lock = threading.Lock()
 
     @property
     def nbytes(self) -> int:
         return int(self.values.nbytes + self.brdf.nbytes)
+
+    @property
+    def complete(self) -> bool:
+        """All mirror nodes computed."""
+        return self.builder is None
+
+    def ensure(self, node_idx: np.ndarray) -> int:
+        """Compute the mirror nodes among ``node_idx`` (flat indices) not built yet; returns how many.
+
+        "Unused environment-map directions are never computed" (issue #11): a lazy table computes a
+        mirror node the first time a sample's lookup needs it.
+        """
+        if self.builder is None:
+            return 0
+        idx = np.asarray(node_idx, dtype=np.int64).ravel()
+        if not len(idx):
+            return 0
+        with self._lock:
+            if self.builder is None:
+                return 0
+            miss = np.zeros(len(self.built), bool)
+            miss[idx] = True
+            miss &= ~self.built
+            need = np.flatnonzero(miss)
+            if not len(need):
+                return 0
+            t0 = time.perf_counter()
+            self.builder.compute(need, self.values.reshape(len(self.built), -1, 3), self.scale)
+            self.built[need] = True
+            st = self.stats
+            st["nodes_built"] = int(self.built.sum())
+            st["node_build_s"] = st.get("node_build_s", 0.0) + time.perf_counter() - t0
+            st["sample_s"], st["haar_s"], st["keep_s"], st["dot_s"] = (float(x) for x in self.builder.timing)
+            if self.built.all():
+                self.builder, self.built = None, None       # complete: drop the build inputs
+            return len(need)
+
+    def build_all(self) -> int:
+        """Compute every mirror node not built yet (a lazy table becomes complete)."""
+        return self.ensure(np.arange(self.grid.size)) if self.builder is not None else 0
 
     def lookup(self, normals: np.ndarray, w_o: np.ndarray) -> np.ndarray:
         """Interpolated ``S`` (P, 3) float32 for unit normals and view directions (P, 3); 0 where grazing.
@@ -507,6 +624,10 @@ class AlphaTable:
         au = np.clip(fu - iu, 0, 1)
         av = np.clip(fv - iv, 0, 1)
         base = neg.astype(np.int32) * (m * m) + iv * m + iu                      # (P,)
+        ok = co >= np.float32(math.cos(self.thetas[-1]) - 1e-6)
+        if self.builder is not None:                  # lazy table: compute the nodes these samples need
+            b = base[ok].astype(np.int64)
+            self.ensure(np.concatenate([b, b + 1, b + m, b + m + 1]))
         # kernel grid
         nt, nb = len(self.thetas), len(self.betas)
         ft = np.arccos(np.clip(co, -1.0, 1.0)) * np.float32((nt - 1) / self.thetas[-1])
@@ -526,7 +647,6 @@ class AlphaTable:
         w16 = (rw[:, :, None] * kw[:, None, :]).reshape(-1, 1, 16)
         vals = self.values.reshape(-1, 3).take(k16, axis=0).astype(np.float32)   # (P, 16, 3)
         acc = np.matmul(w16, vals)[:, 0]
-        ok = co >= np.float32(math.cos(self.thetas[-1]) - 1e-6)
         fac = np.where(ok, np.float32(self.scale) / np.sqrt(np.where(ok, co, np.float32(1.0))), np.float32(0.0))
         return acc * fac[:, None]
 
@@ -564,11 +684,17 @@ class DoubleProductTables:
         Mirror nodes per vectorised block (memory ~ chunk x res^2 x 40 bytes).
     threads : int
         Blocks built concurrently (numpy, PyWavelets and OpenCV release the GIL in their loops).
+    lazy : bool
+        "Unused environment-map directions are never computed" (issue #11): S at a mirror node is
+        computed the first time a lookup needs it (default), so a cluster whose normals and views reach
+        only part of the sphere of mirror directions (a label on one side of an object) pays only for
+        that part; the values are identical to an eager build. False builds every node up front.
     """
 
     def __init__(self, env: np.ndarray, alphas, *, res: int = 32, kernel_grid: tuple[int, int] | None = None,
                  theta_max_deg: float = 80.0, light_keep: int | None = None, brdf_keep: int | None = 512,
-                 r_res=None, d_res: int = 65, light_sub: int | None = None, chunk: int = 512, threads: int = 2):
+                 r_res=None, d_res: int = 65, light_sub: int | None = None, chunk: int = 512, threads: int = 2,
+                 lazy: bool = True):
         t0 = time.perf_counter()
         self.env = envmap_check(env, "DoubleProductTables")
         al = np.atleast_1d(np.asarray(alphas, dtype=np.float64)).ravel()
@@ -586,6 +712,7 @@ class DoubleProductTables:
         self.light_keep, self.brdf_keep, self.chunk = light_keep, brdf_keep, int(chunk)
         self.threads = max(1, int(threads))
         self.light_sub = light_sub
+        self.lazy = bool(lazy)
         self._r_res = r_res
         self._sampler = _EnvSampler(self.env)
         td = time.perf_counter()
@@ -643,60 +770,24 @@ class DoubleProductTables:
         # texel (or sub-texel) centres and solid angles, sub-texels of one texel contiguous
         dw = lsq.solid_angles.reshape(res, ls, res, ls).transpose(0, 2, 1, 3).reshape(-1).astype(np.float32)
         dirs32 = lsq.directions.reshape(res, ls, res, ls, 3).transpose(0, 2, 1, 3, 4).reshape(-1, 3).astype(np.float32)
-        dx, dy, dz = (np.ascontiguousarray(dirs32[:, i]) for i in range(3))
-        values = np.empty((len(nodes), nt * nb, 3), np.float32)
-        timing = np.zeros(4)
-
-        def block(s0: int) -> None:
-            s1 = min(s0 + self.chunk, len(nodes))
-            c = s1 - s0
-            ta = time.perf_counter()
-            F = signed_frames(nodes[s0:s1], signs[s0:s1]).astype(np.float32)         # (c, 3, 3)
-            # world directions F^T w' of the block's texels, one component plane at a time
-            comp = [dx[None, :] * F[:, 0, i, None] + dy[None, :] * F[:, 1, i, None] + dz[None, :] * F[:, 2, i, None]
-                    for i in range(3)]
-            L = self._sampler.components(*comp)                     # (c, R^2 ls^2, 3): env at F^T w'
-            L *= dw[None, :, None]
-            if ls > 1:
-                L = L.reshape(c, R2, ls * ls, 3).sum(axis=2)
-            L = np.ascontiguousarray(L.reshape(c, R2, 3).transpose(0, 2, 1))      # (c, 3, R^2)
-            tb = tc = time.perf_counter()
-            if keep < R2:
-                # non-linear approximation of each node's lighting (NRH03): Haar, keep the largest
-                C = haar2(L.reshape(c * 3, res, res)).reshape(c, 3, R2)
-                tc = time.perf_counter()
-                mag = np.abs(C).sum(axis=1)                                           # (c, R^2)
-                thr = np.partition(mag, R2 - keep, axis=1)[:, R2 - keep]
-                C *= (mag >= thr[:, None])[:, None, :]
-                L = C
-            td = time.perf_counter()
-            # the double products of all (node, slice) pairs of the block at once (dropped lighting
-            # coefficients are zeros): one BLAS product
-            v = L.reshape(c * 3, R2) @ Bd                                             # (c * 3, n_slices)
-            values[s0:s1] = v.reshape(c, 3, -1).transpose(0, 2, 1)
-            te = time.perf_counter()
-            timing[:] += (tb - ta, tc - tb, td - tc, te - td)
-
-        starts = range(0, len(nodes), self.chunk)
-        if self.threads > 1 and len(starts) > 1:
-            with ThreadPoolExecutor(self.threads) as ex:
-                list(ex.map(block, starts))
-        else:
-            for s0 in starts:
-                block(s0)
-        # S >= 0; the kept Haar coefficients of a slice can ring slightly below 0 where the lighting is dark
-        np.maximum(values, 0.0, out=values)
-        peak = float(values.max())
-        scale = peak / 16384.0 if peak > 0 else 1.0
-        values /= scale
-        tab = AlphaTable(alpha, grid, cap, thetas, betas, values.astype(np.float16).reshape(len(nodes), nt, nb, 3),
-                         brdf, scale=scale)
-        t_sample, t_haar, t_keep, t_dot = timing
-        tab.stats = {"seconds": time.perf_counter() - t0, "kernel_s": tk - t0, "sample_s": t_sample,
-                     "haar_s": t_haar, "keep_s": t_keep, "dot_s": t_dot, "r_nodes": len(nodes),
-                     "r_res": grid.m, "cap_rad": cap, "res": res, "light_sub": ls, "light_keep": keep, "n_theta": nt,
-                     "n_beta": nb, "mb": tab.nbytes / 2**20,
-                     "light_mb_if_stored": len(nodes) * (keep * 8 + 12) / 2**20}
+        # unit of the float16 table: an upper bound of S sqrt(cos) = sum_texels L dw K (largest radiance,
+        # 1.25 for bicubic overshoot, times the largest kernel integral), so that a lazy table knows it
+        # before computing any node; values keep float16's relative precision below it
+        k_texel = Bd if keep >= R2 else ihaar2(brdf.dense()[..., 0].reshape(-1, res, res)).reshape(len(kern), R2).T
+        k_int = float((np.abs(k_texel) * dw.reshape(R2, ls * ls).sum(axis=1)[:, None]).sum(axis=0).max())
+        bound = 1.25 * float(np.max(self.env)) * k_int
+        scale = bound / 16384.0 if bound > 0 else 1.0
+        builder = _NodeBuilder(nodes, signs, dirs32, dw, Bd, res, ls, keep, self._sampler, self.chunk, self.threads)
+        values = np.zeros((len(nodes), nt, nb, 3), np.float16)
+        tab = AlphaTable(alpha, grid, cap, thetas, betas, values, brdf, scale=scale,
+                         built=np.zeros(len(nodes), bool), builder=builder)
+        tab.stats = {"kernel_s": tk - t0, "r_nodes": len(nodes), "r_res": grid.m, "cap_rad": cap, "res": res,
+                     "light_sub": ls, "light_keep": keep, "n_theta": nt, "n_beta": nb, "mb": tab.nbytes / 2**20,
+                     "light_mb_if_stored": len(nodes) * (keep * 8 + 12) / 2**20, "lazy": self.lazy, "nodes_built": 0,
+                     "node_build_s": 0.0, "sample_s": 0.0, "haar_s": 0.0, "keep_s": 0.0, "dot_s": 0.0}
+        if not self.lazy:
+            tab.build_all()
+        tab.stats["seconds"] = time.perf_counter() - t0
         self.tables[alpha] = tab
         return tab
 
@@ -711,6 +802,9 @@ class DoubleProductTables:
 
     def _bracket(self, alpha: float):
         al = self.alphas
+        if not al:
+            raise AppFusionError(f"DoubleProductTables: no S table built (alpha {alpha:g} asked for); "
+                                 "add_alpha first")
         if alpha in self.tables:
             return [(self.tables[alpha], 1.0)]
         if alpha < al[0] or alpha > al[-1]:
@@ -761,5 +855,10 @@ class DoubleProductTables:
         return int(self.diffuse.nbytes + sum(t.nbytes for t in self.tables.values()))
 
     def report(self) -> dict:
+        """Sizes and timings: ``mb``, ``build_s`` (construction), ``diffuse_s``, ``node_build_s`` (mirror nodes
+        computed so far, lazily or not), ``nodes_built`` / ``nodes_total`` and per-alpha ``stats``."""
         return {"mb": self.nbytes / 2**20, "build_s": self.build_seconds, "diffuse_s": self.stats["diffuse_s"],
+                "node_build_s": sum(t.stats.get("node_build_s", 0.0) for t in self.tables.values()),
+                "nodes_built": sum(t.stats.get("nodes_built", 0) for t in self.tables.values()),
+                "nodes_total": sum(t.grid.size for t in self.tables.values()), "lazy": self.lazy,
                 "alphas": {str(a): t.stats for a, t in self.tables.items()}}

@@ -219,6 +219,47 @@ def test_lighting_truncation_trades_accuracy(small_tables):
     assert T64.tables[0.12].stats["light_keep"] == 64
 
 
+def test_lazy_tables_compute_only_the_mirror_nodes_samples_need(small_tables):
+    """Skip "unused env-map directions": a lazy table computes a mirror node the first time a lookup
+    needs it; its S equals an eager table's; grazing samples compute nothing."""
+    env, _, _ = small_tables
+    kw = dict(r_res=33, d_res=9)
+    eager = DoubleProductTables(env, [0.12], lazy=False, **kw)
+    lazy = DoubleProductTables(env, [0.12], **kw)
+    te, tl = eager.tables[0.12], lazy.tables[0.12]
+    assert te.complete and te.stats["nodes_built"] == te.grid.size
+    assert not tl.complete and tl.stats["nodes_built"] == 0 and (tl.values == 0).all()
+    # one side of an object seen from above: normals within 30 deg of +x, views from the upper half
+    rng = np.random.default_rng(3)
+    n = _unit(np.array([1.0, 0.0, 0.3]) + 0.35 * rng.normal(size=(400, 3)))
+    wo = _unit(n + np.array([0.0, 0.0, 0.8]) + 0.3 * rng.normal(size=(400, 3)))
+    keep = ((n * wo).sum(1) > 0.2) & (wo[:, 2] > 0)
+    n, wo = n[keep], wo[keep]
+    got = lazy.S(n, wo, 0.12)
+    built = tl.stats["nodes_built"]
+    assert 0 < built < 0.5 * tl.grid.size
+    np.testing.assert_allclose(got, eager.S(n, wo, 0.12), rtol=2e-3, atol=1e-6 * float(got.max()))
+    # the same samples again: nothing new; grazing and back-facing views: nothing
+    lazy.S(n, wo, 0.12)
+    graz = _unit(np.cross(n, [0.3, 0.1, 0.9]))
+    assert (lazy.S(n, graz, 0.12) == 0).all() and (lazy.S(n, -wo, 0.12) == 0).all()
+    assert tl.stats["nodes_built"] == built
+    rep = lazy.report()
+    assert rep["nodes_built"] == built and rep["nodes_total"] == tl.grid.size and rep["lazy"]
+    # completing it gives the eager table, node for node
+    assert tl.build_all() == tl.grid.size - built and tl.complete and tl.build_all() == 0
+    np.testing.assert_allclose(tl.values.astype(np.float32), te.values.astype(np.float32), rtol=2e-3, atol=2.0)
+    assert tl.scale == te.scale
+
+
+def test_tables_without_alphas_give_D_only(small_tables):
+    env, _, _ = small_tables
+    T = DoubleProductTables(env, [], d_res=9)
+    assert T.alphas == [] and T.D(np.array([[0.0, 0.0, 1.0]])).shape == (1, 3)
+    with pytest.raises(AppFusionError, match="no S table"):
+        T.S(np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, 1.0]]), 0.1)
+
+
 def test_S_inputs_are_checked(small_tables):
     env, T, _ = small_tables
     with pytest.raises(AppFusionError, match="shape"):

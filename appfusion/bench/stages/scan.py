@@ -52,6 +52,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
+
 #: quick / full budgets, seconds (the quick scan itself takes ~25-40 s on 2 shared cores)
 BUDGET_S = (45.0, 900.0)
 
@@ -196,6 +198,126 @@ def timed_scan(session: Path, out: Path, config, envmap=None, log=None) -> dict[
     return {"wall_s": wall, "stage_s": stage_s, "metrics": metrics, "summary": summary, "messages": messages}
 
 
+def rgb_pass_views(session: Path) -> tuple[np.ndarray, Any]:
+    """True RGB-camera poses (camera to world, (V, 4, 4)) of the RGB (or scan) pass of a synthetic
+    session, and the RGB intrinsics: the view directions the RGB pass samples."""
+    from appfusion.frame import invert_pose
+    from appfusion.pipeline import plan_passes
+    from replay.session import SessionReader, parse_groundtruth
+
+    src = SessionReader(session)
+    ranges = plan_passes(src)
+    a, b = ranges.get("rgb") or ranges["scan"]
+    gt = Path(session) / "truth" / "groundtruth.txt"
+    times, poses, _, _ = parse_groundtruth(gt.read_text(), gt)
+    ts = np.asarray(src.timestamps() if callable(getattr(src, "timestamps", None)) else src.timestamps)[a:b]
+    j = np.clip(np.searchsorted(times, ts - 1e-6), 0, len(times) - 1)
+    f = src.frame(a)
+    return np.array([poses[k] @ invert_pose(f.depth_to_rgb) for k in j]), f.rgb_intrinsics
+
+
+def view_samples(positions: np.ndarray, normals: np.ndarray, pose: np.ndarray, K, theta_max_deg: float = 80.0):
+    """Indices of the points a camera samples and their unit view directions (towards the camera).
+
+    A point is sampled when it projects into the image and ``n.w_o >= cos(theta_max)``; occlusion is
+    ignored, so the set is a superset of what the RGB pass sees (the mirror directions it needs are an
+    upper bound, the measured saving of lazy tables a lower bound).
+    """
+    c = pose[:3, 3]
+    wo = c - positions
+    dist = np.linalg.norm(wo, axis=1)
+    wo /= np.maximum(dist, 1e-12)[:, None]
+    Xc = (positions - c) @ pose[:3, :3]                       # camera frame (OpenCV axes)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K.fx * Xc[:, 0] / Xc[:, 2] + K.cx
+        v = K.fy * Xc[:, 1] / Xc[:, 2] + K.cy
+    inside = (Xc[:, 2] > 0) & (u >= 0) & (u <= K.width - 1) & (v >= 0) & (v <= K.height - 1)
+    ok = inside & (np.einsum("ij,ij->i", normals, wo) >= np.cos(np.radians(theta_max_deg)))
+    idx = np.flatnonzero(ok)
+    return idx, wo[idx]
+
+
+def wavelet_skip(env: np.ndarray, positions: np.ndarray, normals: np.ndarray, labels: np.ndarray,
+                 alphas: np.ndarray, specular: np.ndarray, poses: np.ndarray, K, max_points: int = 20_000,
+                 seed: int = 0) -> dict[str, Any]:
+    """Before / after of "unused env-map directions are never computed" (lazy S tables, issue #11).
+
+    Builds the S tables of the specular clusters' alphas for ``env`` eagerly (every mirror node) and
+    lazily (nodes computed when the samples of the RGB pass's views need them), on one BLAS and one
+    build thread so that CPU time measures work, not waiting.
+
+    Parameters
+    ----------
+    env : (2, N, N, 3) environment map.
+    positions, normals : (P, 3) points and unit normals; labels (P,) cluster per point.
+    alphas, specular : (C,) roughness and whether the cluster has a specular lobe (table built).
+    poses : (V, 4, 4) RGB-camera poses of the views; K: their intrinsics.
+    max_points : int
+        Points per cluster used (a random subset; the mirror directions they reach are what counts).
+
+    Returns
+    -------
+    dict
+        ``eager_cpu_s``, ``lazy_cpu_s`` (construction + node builds in the lookups, the lookups'
+        own time subtracted), ``saving`` (1 - lazy / eager), ``nodes_built``, ``nodes_total``,
+        ``tables_mb``, ``max_rel_diff`` of S between the two, ``samples``, ``per_alpha`` node counts.
+    """
+    from appfusion.double_product import DoubleProductTables
+    from appfusion.fusion import blas_threads
+
+    rng = np.random.default_rng(seed)
+    used = np.unique(np.asarray(alphas, float)[np.asarray(specular, bool)])
+    keep = np.zeros(len(positions), bool)
+    for c in np.flatnonzero(specular):
+        idx = np.flatnonzero(labels == c)
+        keep[rng.choice(idx, min(len(idx), max_points), replace=False) if len(idx) else idx] = True
+    P, N, al = positions[keep], normals[keep], np.asarray(alphas, float)[labels[keep]]
+    views = [view_samples(P, N, T, K) for T in poses]
+    out: dict[str, Any] = {"alphas": used.tolist(), "points": int(keep.sum()), "views": len(poses),
+                           "samples": int(sum(len(i) for i, _ in views))}
+    if not len(used):
+        return {**out, "saving": None, "note": "no specular cluster: no S table at all (model ladder)"}
+    with blas_threads(1):
+        c0 = time.process_time()
+        eager = DoubleProductTables(env, used, lazy=False, threads=1)
+        eager_cpu = time.process_time() - c0
+        c0 = time.process_time()
+        lazy = DoubleProductTables(env, used, lazy=True, threads=1)
+        got = [lazy.S(N[i], w, al[i]) for i, w in views]
+        lazy_total = time.process_time() - c0
+        c0 = time.process_time()
+        ref = [eager.S(N[i], w, al[i]) for i, w in views]
+        lookup_cpu = time.process_time() - c0
+    g, r = np.concatenate(got), np.concatenate(ref)
+    scale = max(float(np.abs(r).max()), 1e-30)
+    rep = lazy.report()
+    lazy_cpu = max(lazy_total - lookup_cpu, 0.0)
+    return {**out, "eager_cpu_s": eager_cpu, "lazy_cpu_s": lazy_cpu, "lookup_cpu_s": lookup_cpu,
+            "saving": 1.0 - lazy_cpu / eager_cpu if eager_cpu > 0 else None,
+            "nodes_built": rep["nodes_built"], "nodes_total": rep["nodes_total"],
+            "tables_mb": eager.nbytes / 2**20, "max_rel_diff": float(np.abs(g - r).max() / scale),
+            "per_alpha": {str(a): {"nodes_built": t.stats["nodes_built"], "nodes_total": t.grid.size}
+                          for a, t in lazy.tables.items()}}
+
+
+def truth_clusters(session: Path, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The true material of each point (closest truth triangle) as labels, with the materials' Ward
+    alphas and whether each has a specular lobe: the clusters a perfect §5.2 would give."""
+    import open3d as o3d
+
+    tdir = Path(session) / "truth"
+    with np.load(tdir / "object.npz") as z:
+        V, F, fm = z["vertices"], z["faces"], z["face_material"]
+    mats = json.loads((tdir / "materials.json").read_text())["materials"]
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(V, np.float32)), o3d.core.Tensor(np.asarray(F, np.uint32)))
+    prim = scene.compute_closest_points(o3d.core.Tensor(np.asarray(positions, np.float32)))["primitive_ids"].numpy()
+    labels = np.asarray(fm)[prim.astype(np.int64)].astype(np.int64)
+    alphas = np.array([float(m["alpha"]) for m in mats])
+    specular = np.array([m.get("lobe", "ward") == "ward" and max(m["rho_s"]) > 0 for m in mats])
+    return labels, alphas, specular
+
+
 def _number(v) -> float | None:
     try:
         f = float(v)
@@ -264,6 +386,30 @@ def run(ctx) -> dict[str, float | None]:
         saving = env_s / first["wall_s"] if first["wall_s"] > 0 else None
     info["skip_lighting"] = skip
 
+    # -- skip: unused env-map directions are never computed (lazy S tables) ---------------------------
+    wav = None
+    if (out / "result.npz").exists():
+        from appfusion.result import ScanResult
+
+        res = ScanResult.load(out / "result.npz")
+        if res.envmap is not None:
+            poses, K = rgb_pass_views(Path(session))
+            if ctx.quick:
+                poses = poses[::2]
+            spec = np.array([mm == "ward" for mm in res.model], bool)
+            wskip = {"scan_clusters": wavelet_skip(res.envmap, res.positions, res.normals, res.labels, res.alpha,
+                                                   spec, poses, K, max_points=5_000 if ctx.quick else 20_000,
+                                                   seed=ctx.seed)}
+            if not ctx.quick:
+                lab, al, sp = truth_clusters(Path(session), res.positions)
+                wskip["true_materials"] = wavelet_skip(res.envmap, res.positions, res.normals, lab, al, sp, poses,
+                                                       K, seed=ctx.seed)
+            wskip["what"] = ("S tables of the specular clusters' alphas under the scan's environment map: eager "
+                             "(every mirror node) against lazy (nodes computed when the RGB pass's views need "
+                             "them; occlusion ignored, so the saving is a lower bound); CPU, one thread")
+            info["skip_wavelet"] = wskip
+            wav = wskip["scan_clusters"].get("saving")
+
     if ctx.quick:
         ctx.note("demo_scan_s", f"--quick: wall time of a small session's scan ({QUICK_SESSION['size'][0]}x"
                                 f"{QUICK_SESSION['size'][1]}, {QUICK_SESSION['frames']} frames per pass, "
@@ -277,7 +423,7 @@ def run(ctx) -> dict[str, float | None]:
 
     got: dict[str, float | None] = {"relit_rel_rmse": _number(m.get("relit_rel_rmse")),
                                     "demo_scan_s": round(first["wall_s"], 2),
-                                    "skip_lighting_saving": saving}
+                                    "skip_lighting_saving": saving, "skip_wavelet_saving": wav}
     for k, name in SCAN_METRICS.items():
         got[name] = _number(m.get(k))
     return got
