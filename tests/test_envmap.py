@@ -159,6 +159,32 @@ def test_supersampling_fills_the_footprint():
     assert cov[1] < 0.3 and cov["auto"] > 0.85, cov
 
 
+def test_auto_supersampling_and_pixel_kernel(gt128):
+    """'auto' puts two sub-rays per texel at the ball's centre; a Gaussian pixel kernel (pixel_sigma)
+    sharpens the bright rectangles' edges against the box kernel on the same views."""
+    acc = EnvMapAccumulator(128)
+    texel = np.sqrt(4 * np.pi / (2 * 128 * 128))
+    for dist, f in ((0.6, 262.5), (0.6, 525.0), (1.2, 525.0)):
+        step = 2 * (dist - 0.035) / (f * 0.035)                     # one pixel in reflected direction
+        s = acc._supersample("auto", dist, 0.035, INTR.scaled(int(640 * f / 525), int(480 * f / 525)))
+        assert s == min(int(np.ceil(2 * step / texel)), 16) and step / s <= texel / 2 + 1e-12
+    poses = orbit(24, seed=41)
+    imgs = [render_rgb(p, seed=i, noise=0.0) for i, p in enumerate(poses)]
+    p90 = {}
+    for sig in (None, 0.25):
+        acc = EnvMapAccumulator(128, pixel_sigma=sig)
+        for img, p in zip(imgs, poses):
+            acc.add_view(img, INTR, p, CENTER, RADIUS)
+        em = acc.envmap()
+        assert em.meta["pixel_sigma"] == sig
+        m = em.coverage & lit(gt128)
+        p90[sig] = np.percentile(rel_errors(em.radiance, gt128, m), 90)
+    assert p90[0.25] < 0.9 * p90[None], p90
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(AppFusionError, match="pixel_sigma"):
+            EnvMapAccumulator(16, pixel_sigma=bad)
+
+
 def test_add_view_bad_input_and_edge_cases():
     acc = EnvMapAccumulator(32)
     pose = orbit(1)[0]
@@ -453,3 +479,44 @@ def test_run_lighting_pass_over_a_recorded_session(tmp_path):
     with pytest.raises(PassMissingError, match="geometry"):
         run_lighting_pass(r, box=BOX, n=16, pass_name="geometry")
     json.dumps(em.meta)
+
+
+# -- evaluation against a scanner's truth ---------------------------------------------------------------
+
+def _truth_dir(tmp_path, white=(2.0, 1.8, 1.5), with_white=True):
+    """A minimal synthetic-scanner truth/ folder: the test environment (absolute radiance) as a lat-long
+    EXR, the white circles' radiance, a ball resting on a 0.6 m support plane."""
+    t = tmp_path / "truth"
+    (t / "envmaps").mkdir(parents=True)
+    cv2.imwrite(str(t / "envmaps" / "office.exr"), gt_latlong(128)[..., ::-1].astype(np.float32))
+    mk = {"white_radiance_rgb": {"environment": [list(white)] * 4}} if with_white else {}
+    (t / "markers.json").write_text(json.dumps(mk))
+    (t / "scene.json").write_text(json.dumps({"environment": {"name": "office"},
+                                              "ball": {"centre_m": [0, 0, 0.035], "radius_m": 0.035},
+                                              "plane": {"half_size_m": 0.6}}))
+    return t
+
+
+def test_envmap_comparison_calibrates_and_masks(tmp_path):
+    from appfusion.evaluate import envmap_comparison, envmap_energy_rel_err, envmap_error, truth_envmap
+    white = np.array([2.0, 1.8, 1.5])
+    t = _truth_dir(tmp_path, white)
+    ref = truth_envmap(t, "office", 64) / white                # what a perfect capture holds (white units)
+    down = octa.sphere_directions(64)[..., 2] < 0
+    c = envmap_comparison(ref, t)
+    assert c["median_rel_err"] < 1e-6 and np.abs(c["energy_rel_err"]).max() < 1e-6
+    assert c["known_fraction"] == pytest.approx(0.5, abs=0.01)      # the plane hides the lower half
+    est = ref * 1.04
+    est[down] = 0.01                                            # the black paper the ball sees below
+    assert envmap_error(est, t) == pytest.approx(0.04, abs=1e-4)
+    assert envmap_energy_rel_err(est, t) == pytest.approx(0.04, abs=1e-4)
+    est[..., 2] *= 0.9                                          # a colour error counts too
+    assert envmap_energy_rel_err(EnvMap(est), t) == pytest.approx(1.04 * 0.9 - 1, abs=1e-4)
+    assert envmap_error(ref * white, t) > 0.4                   # absolute radiance is not the engine's unit
+    cov = np.ones(down.shape, bool)
+    cov[0, :, :32] = False                                     # only what was measured is compared
+    assert envmap_comparison(EnvMap(ref, coverage=cov), t)["n_texels"] < c["n_texels"]
+    t2 = _truth_dir(tmp_path / "b", with_white=False)
+    assert np.isnan(envmap_error(ref, t2)) and np.isnan(envmap_energy_rel_err(ref, t2))
+    with pytest.raises(AppFusionError, match="shape"):
+        envmap_error(np.zeros((64, 64, 3)), t)

@@ -73,17 +73,18 @@ def test_mirror_depth_pass_with_tracking_error(gt):
     beside it) with tracked poses 2 mm / 0.3 deg off. The mirror cues fit the ball over the whole pass and
     each frame's silhouette re-locates it against the camera."""
     rng = np.random.default_rng(5)
+    K = INTR.scaled(320, 240)
     frames = []
     for i, p in enumerate(orbit(16, seed=31)):
         prgb = p @ invert_pose(DEPTH_TO_RGB)
-        frames.append(Frame(index=i, timestamp=i / 30, depth=render_mirror_depth(p, seed=i),
-                            rgb=render_rgb(prgb, seed=i), rgb_encoding="linear", depth_intrinsics=INTR,
-                            rgb_intrinsics=INTR, depth_to_rgb=DEPTH_TO_RGB, pose=_noisy(p, rng, 0.002, 0.3)))
+        frames.append(Frame(index=i, timestamp=i / 30, depth=render_mirror_depth(p, intr=K, seed=i),
+                            rgb=render_rgb(prgb, intr=K, seed=i), rgb_encoding="linear", depth_intrinsics=K,
+                            rgb_intrinsics=K, depth_to_rgb=DEPTH_TO_RGB, pose=_noisy(p, rng, 0.002, 0.3)))
     out = {}
     for pfc in (False, True):
         lp = LightingPass(n=N, box=BOX, emitter=EMITTER, per_frame_center=pfc)
         for f in frames:
-            lp.add_depth(f.depth, INTR, f.pose)
+            lp.add_depth(f.depth, K, f.pose)
         fit = lp.fit()
         assert fit.method == "mirror" and fit.on_plane, fit
         # each frame's pose moves the ball by ~4 mm (2 mm + 0.3 deg at 0.65 m): the fit averages 16 of them
