@@ -3,13 +3,17 @@
 For now the scene comes from a small generator in this module (NOT the project's synthetic scanner,
 which the integrator will wire in later): a mirror ball on the support plane, reflecting an analytic
 environment (sky gradient, a small bright "sun", two windows, a floor), is rendered analytically
-(ray-sphere, supersampled pixels, 1% noise) by orbiting 640x480 cameras; its depth carries Kinect-like
-noise (3 mm along the ray), drop-outs and outlier depths. The stage fits the sphere from the depth
-frames, accumulates the RGB frames and compares with the environment averaged over each texel.
+(ray-sphere, supersampled pixels, 1% noise) by orbiting 640x480 cameras; its depth is what a
+structured-light camera gets from a mirror (only the specular spot, wrong returns behind the surface,
+the emitter's shadow beside the ball; see :func:`render_depth`). The stage fits the ball from the depth frames (specular spot + silhouette,
+:func:`appfusion.sphere_fit.fit_mirror_ball`), accumulates the RGB frames and compares with the
+environment averaged over each texel: the same figure as :func:`appfusion.evaluate.envmap_comparison`
+(mean over RGB of ``|est - truth|`` over the truth's mean, median over measured, lit texels; here the
+RGB is in the environment's own units and the ball sees the analytic floor, so no calibration and no
+plane mask are needed).
 
-Reported: ``envmap_median_rel_err`` (median texel-wise relative error over measured, lit texels) and
-``sphere_center_err_mm``; extra figures (energy error, radius error, coverage, timings) go to
-``ctx.extra["lighting"]``.
+Reported: ``envmap_median_rel_err`` and ``sphere_center_err_mm``; extra figures (energy error, radius
+error, coverage, timings) go to ``ctx.extra["lighting"]``.
 
 ``python -m appfusion.bench.stages.lighting --figure docs/img/lighting-filling.png`` draws the map
 filling in over the pass (the figure of docs/lighting-pass.md).
@@ -31,6 +35,8 @@ BALL_R = 0.06
 BOX = np.array([[-0.2, -0.2, 0.008], [0.2, 0.2, 0.3]])
 DEPTH_TO_RGB = make_pose(None, [-0.025, 0.0, 0.0])
 SUN = np.array([0.5, -0.3, 0.81]) / np.linalg.norm([0.5, -0.3, 0.81])
+#: the depth camera's emitter in its own frame (Kinect v1)
+EMITTER = np.array([0.075, 0.0, 0.0])
 
 
 def environment(d: np.ndarray) -> np.ndarray:
@@ -108,18 +114,39 @@ def render_rgb(pose_rgb: np.ndarray, rng: np.random.Generator, ss: int = 3) -> n
 
 
 def render_depth(pose: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Kinect-like depth (metres, NaN invalid): 3 mm noise along the ray, no return at grazing angles,
-    30% drop-outs and 5% outliers on the mirror, the support plane z = 0 around it."""
+    """Kinect-like depth of the MIRROR ball (metres, NaN invalid), as a structured-light camera sees a mirror:
+    depth only at the specular spot (normal within 5 deg of the bisector of the directions to the camera
+    and to the emitter ``EMITTER``; 3 mm noise), 3% of the other ball pixels a wrong return behind the
+    surface by |N(0, 2 cm)|, the rest of the ball invalid; the support plane z = 0 around it (1.5 mm noise)
+    except in the ball's shadow from the emitter."""
     v, u = np.mgrid[0:INTR.height, 0:INTR.width].astype(np.float64)
     dc, dw = _rays(pose, u, v)
     o = pose[:3, 3]
     hit, t = _ball_hit(o, dw)
-    cos = -((o + t[..., None] * dw - BALL_C) / BALL_R * dw).sum(-1)
-    t_plane = -o[2] / np.where(dw[..., 2] < -1e-9, dw[..., 2], -1e-9)
-    z = np.where(hit, t, t_plane) * dc[..., 2] + rng.normal(0, 0.003, u.shape)
-    z[hit & ((cos < 0.25) | (rng.random(u.shape) < 0.3))] = np.nan
-    bad = hit & (rng.random(u.shape) < 0.05)
-    z[bad] += rng.uniform(-0.1, 0.1, int(bad.sum()))
+    nrm_c = ((o + t[..., None] * dw - BALL_C) / BALL_R) @ pose[:3, :3]      # normal, camera frame
+    pc = t[..., None] * dc
+    h = -pc / np.linalg.norm(pc, axis=-1, keepdims=True)
+    to_em = EMITTER - pc
+    h = h + to_em / np.linalg.norm(to_em, axis=-1, keepdims=True)
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    spot = hit & ((nrm_c * h).sum(-1) >= np.cos(np.radians(5.0)))
+    z = np.full(u.shape, np.nan)
+    zb = t * dc[..., 2]
+    z[spot] = zb[spot] + rng.normal(0, 0.003, int(spot.sum()))
+    bad = hit & ~spot & (rng.random(u.shape) < 0.03)
+    z[bad] = zb[bad] + np.abs(rng.normal(0, 0.02, int(bad.sum())))
+    plane = ~hit & (dw[..., 2] < -1e-9)
+    t_plane = -o[2] / np.where(plane, dw[..., 2], -1.0)
+    P = o + t_plane[..., None] * dw
+    seg = (pose[:3, :3] @ EMITTER + o) - P                                   # towards the emitter
+    L = np.linalg.norm(seg, axis=-1)
+    sd = seg / np.maximum(L, 1e-12)[..., None]
+    oc = P - BALL_C
+    b = (sd * oc).sum(-1)
+    disc = b * b - (oc * oc).sum(-1) + BALL_R ** 2
+    ts = -b - np.sqrt(np.maximum(disc, 0.0))
+    lit = plane & ~((disc > 0) & (ts > 0) & (ts < L))
+    z[lit] = (t_plane * dc[..., 2])[lit] + rng.normal(0, 0.0015, int(lit.sum()))
     return z.astype(np.float32)
 
 
@@ -132,6 +159,7 @@ def run_scene(n: int, n_rgb: int, n_depth: int, seed: int = 0, snapshots: tuple[
     from ...lighting_pass import LightingPass
 
     rng = np.random.default_rng(seed)
+    pass_kwargs = {"emitter": EMITTER, **pass_kwargs}
     lp = LightingPass(n=n, box=BOX, **pass_kwargs)
     for p in camera_poses(n_depth, seed + 1):
         lp.add_depth(render_depth(p, rng), INTR, p)
