@@ -8,6 +8,7 @@ import math
 import sys
 import time
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -296,3 +297,148 @@ def test_cli_bench_stability_json(tmp_path):
     assert all(b < a for a, b in zip(env_err, env_err[1:]))
     assert png.read_bytes()[:4] == b"\x89PNG" and rep["plot"] == str(png)
     assert math.isfinite(rep["seconds"]) and time.perf_counter() - t0 < 60
+
+
+# -- the end-to-end scan stage ---------------------------------------------------------------------
+
+def test_scan_stage_session_cache(tmp_path, monkeypatch):
+    """The stage's session is rendered once (into a temporary sibling, renamed into place) and reused; an
+    interrupted render (no truth/scene.json) is rendered again."""
+    import replay.synth as RS
+    from appfusion.bench.stages import scan as S
+
+    calls = []
+
+    def fake_render(scene, out, frames, size, seed, detail, quality, show_progress, cache_dir):
+        calls.append((scene, Path(out).name, frames, tuple(size), seed, detail, quality))
+        (Path(out) / "truth").mkdir(parents=True)
+        (Path(out) / "truth" / "scene.json").write_text("{}")
+        return Path(out)
+
+    monkeypatch.setattr(RS, "render_session", fake_render)
+    root = tmp_path / "sessions"
+    p1, t1 = S.cached_session(root, "two-material", 12, (320, 240), 3, log=lambda s: None)
+    p2, t2 = S.cached_session(root, "two-material", 12, (320, 240), 3, log=lambda s: None)
+    assert p1 == p2 == root / "two-material-320x240-12f-test-test-seed3" and t2 == 0.0 and len(calls) == 1
+    assert calls[0][1].startswith(".two-material-320x240-12f") and calls[0][1].endswith(".tmp")
+    assert sorted(x.name for x in root.iterdir()) == [p1.name]            # no temporary folder left
+    (p1 / "truth" / "scene.json").unlink()                                # interrupted: rendered again
+    S.cached_session(root, "two-material", 12, (320, 240), 3, log=lambda s: None)
+    assert len(calls) == 2
+    S.cached_session(root, "two-material", 12, (320, 240), 4, log=lambda s: None)   # other seed, other session
+    assert len(calls) == 3 and len(list(root.iterdir())) == 2
+
+
+def test_scan_stage_timer_restores_and_reports_failures():
+    from appfusion import evaluate as ev
+    from appfusion.bench.stages import scan as S
+    from appfusion.pipeline import ScanRunner
+
+    orig = {a: getattr(ScanRunner, a) for a in S._TIMED}
+    orig_eval = ev.evaluate_result
+    with S.stage_timer() as st:
+        assert ScanRunner._stage_geometry is not orig["_stage_geometry"]
+        obj = types.SimpleNamespace()
+        with pytest.raises(AttributeError):
+            ScanRunner._stage_geometry(obj, 0, 1, "geometry")           # a stage that raises
+    assert all(getattr(ScanRunner, a) is f for a, f in orig.items()) and ev.evaluate_result is orig_eval
+    assert st["geometry"] >= 0 and st["failed"][0][0] == "geometry"
+
+
+def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
+    """The stage's contract with a stand-in for run_scan: evaluation names become scan_* metrics, quick
+    notes are set, and a failed mirror-ball fit is retried with the ball's radius (and said so)."""
+    from appfusion.bench.stages import scan as S
+    from appfusion.errors import EstimationError
+    import appfusion.pipeline as P
+
+    session = tmp_path / "sessions" / S.session_name("two-material", 40, (320, 240), 0, "test", "test")
+    (session / "truth").mkdir(parents=True)
+    (session / "truth" / "scene.json").write_text(json.dumps({"ball": {"radius_m": 0.035}}))
+    seen = []
+
+    def fake_run_scan(sess, out, config, envmap=None, progress=False, log=print):
+        seen.append(config.ball_radius_m)
+        if config.ball_radius_m is None:
+            raise EstimationError("lighting pass sphere fit: the inliers span too small a patch")
+        Path(out).mkdir(parents=True, exist_ok=True)
+        time.sleep(0.05)
+        (Path(out) / "metrics.json").write_text(json.dumps(
+            {"relit_rel_rmse": 0.25, "ate_mm": 1.5, "chamfer_mm": 0.3, "label_accuracy": 0.9,
+             "envmap_median_rel_err": float("nan"), "alpha_sharpest_rel_err": 0.1}))
+        return "summary"
+
+    monkeypatch.setattr(P, "run_scan", fake_run_scan)
+    ctx = BenchContext(workdir=tmp_path, quick=True, stage="scan", log=lambda s: None)
+    got = S.run(ctx)
+    assert seen == [None, 0.035]
+    assert got["relit_rel_rmse"] == 0.25 and got["scan_ate_mm"] == 1.5 and got["scan_label_accuracy"] == 0.9
+    assert got["scan_envmap_median_rel_err"] is None and got["scan_rho_s_rel_err"] is None   # NaN / missing
+    assert got["demo_scan_s"] >= 0.05 and set(got) <= set(METRICS)
+    assert got["skip_wavelet_saving"] is None                     # no result.npz from the stand-in
+    e = ctx.extra["scan"]
+    assert e["fallback"]["ball_radius_m"] == 0.035 and "sphere fit" in e["fallback"]["error"]
+    assert e["evaluation"]["alpha_sharpest_rel_err"] == 0.1 and e["session"]["demo"] is False
+    assert "small session" in ctx.notes["demo_scan_s"] and "radius given" in ctx.notes["relit_rel_rmse"]
+    assert 0.0 <= got["skip_lighting_saving"] <= 1.0
+
+
+def test_view_samples_and_truth_free_wavelet_skip():
+    """Points a camera samples: in the image and within 80 degrees of the normal; lazy tables report the
+    mirror nodes a one-sided view set needs, with the same S as eager tables."""
+    from appfusion.bench.stages.scan import view_samples, wavelet_skip
+    from appfusion.frame import Intrinsics
+    from replay.synth.camera import look_at
+    from appfusion.rgb_synth import synthetic_envmap
+
+    K = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5)
+    g = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 21), np.linspace(-0.1, 0.1, 21)), -1).reshape(-1, 2)
+    P = np.c_[g, np.zeros(len(g))]
+    N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    N[:10] = [0.0, 0.0, -1.0]                                       # facing away: never sampled
+    pose = look_at(np.array([0.0, -0.3, 0.4]), np.zeros(3))
+    idx, wo = view_samples(P, N, pose, K)
+    assert 300 < len(idx) < len(P) and idx.min() >= 10
+    assert np.allclose(np.linalg.norm(wo, axis=1), 1) and (wo[:, 2] > 0).all()
+    far = look_at(np.array([2.0, 0.0, 0.05]), np.array([2.0, 1.0, 0.05]))    # looking away
+    assert len(view_samples(P, N, far, K)[0]) == 0
+    env = synthetic_envmap(16, seed=2)
+    labels = np.zeros(len(P), np.int64)
+    w = wavelet_skip(env, P, N, labels, np.array([0.3]), np.array([True]), [pose], K)
+    assert 0 < w["nodes_built"] < w["nodes_total"] and w["max_rel_diff"] < 5e-3 and w["samples"] == len(idx)
+    assert w["eager_cpu_s"] > 0 and w["saving"] is not None
+    none = wavelet_skip(env, P, N, labels, np.array([0.3]), np.array([False]), [pose], K)
+    assert none["saving"] is None and "no specular" in none["note"]
+
+
+@pytest.mark.slow
+def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
+    """The real stage on a small session (320 x 240, 16 frames per pass, 2000 points; ~30 s): every
+    metric it owns is reported, the report is written, the timing adds up, and the session is cached."""
+    from appfusion.bench.stages import scan as S
+
+    monkeypatch.setattr(S, "QUICK_SESSION", {"scene": "two-material", "frames": 16, "size": (320, 240),
+                                              "detail": "test", "quality": "test"})
+    monkeypatch.setattr(S, "QUICK_POINTS", 2000)
+    monkeypatch.setattr(S, "QUICK_TEXTURE", 64)
+    ctx = BenchContext(workdir=tmp_path, quick=True, stage="scan", log=lambda s: None)
+    t0 = time.perf_counter()
+    got = S.run(ctx)
+    assert time.perf_counter() - t0 < 60
+    assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
+                        *S.SCAN_METRICS.values()}
+    for k, v in got.items():
+        assert v is None or math.isfinite(v), k
+    assert 0 < got["relit_rel_rmse"] < 10 and got["scan_chamfer_mm"] > 0 and got["scan_normal_err_deg"] > 0
+    e = ctx.extra["scan"]
+    assert got["demo_scan_s"] == pytest.approx(e["wall_s"], abs=0.02)
+    st = e["stage_s"]
+    assert {"ir-calibration", "environment", "geometry", "rgb", "evaluation", "export"} <= set(st)
+    assert sum(st.values()) == pytest.approx(e["wall_s"], rel=0.01, abs=0.05)
+    assert 0 < got["skip_lighting_saving"] < 1 and e["skip_lighting"]["saved_s"] == pytest.approx(st["environment"], abs=0.01)
+    sw = e["skip_wavelet"]["scan_clusters"]
+    if sw.get("saving") is not None:
+        assert sw["nodes_built"] <= sw["nodes_total"] and sw["max_rel_diff"] < 5e-3
+    out = tmp_path / "scan"
+    assert (out / "report.html").exists() and (out / "result.npz").exists() and (out / "metrics.json").exists()
+    assert S.cached_session(tmp_path / "sessions", "two-material", 16, (320, 240), 0)[1] == 0.0
