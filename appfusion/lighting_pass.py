@@ -248,7 +248,8 @@ class LightingPass:
         if self.sphere is None:
             raise EstimationError("lighting pass: fit the mirror ball before locating it per frame")
         if self._cues_possible():
-            cues = ball_cues_from_depth(depth, intrinsics, pose, self.box, self.emitter)
+            cues = ball_cues_from_depth(depth, intrinsics, pose, self.box, self.emitter,
+                                        near=(self.sphere.center, self.sphere.radius))
             ref = locate_ball(cues.rays, self.sphere.center, self.sphere.radius)
             if ref is not None:
                 self.center_shifts_m.append(float(np.linalg.norm(ref - self.sphere.center)))

@@ -698,8 +698,22 @@ def _step_directions(emitter: Any) -> list[tuple[int, int]]:
     return [st for st in steps if st[0] * e[0] + st[1] * e[1] > 0.5]
 
 
+def _project_rect(points: np.ndarray, pose: np.ndarray, intr: Intrinsics, pad: float
+                  ) -> tuple[int, int, int, int] | None:
+    """Pixel rectangle (x0, x1, y0, y1), end-exclusive, holding the projections of world points, grown by
+    ``pad`` pixels and clipped to the image; None when a point is behind the camera."""
+    cc = (points - pose[:3, 3]) @ pose[:3, :3]
+    if not (cc[:, 2] > 1e-6).all():
+        return None
+    u = intr.fx * cc[:, 0] / cc[:, 2] + intr.cx
+    v = intr.fy * cc[:, 1] / cc[:, 2] + intr.cy
+    W, H = intr.width, intr.height
+    return (int(np.clip(np.floor(u.min() - pad), 0, W)), int(np.clip(np.ceil(u.max() + pad) + 1, 0, W)),
+            int(np.clip(np.floor(v.min() - pad), 0, H)), int(np.clip(np.ceil(v.max() + pad) + 1, 0, H)))
+
+
 def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, box: Any,
-                         emitter: Any = None) -> BallCues:
+                         emitter: Any = None, near: tuple[Any, float] | None = None) -> BallCues:
     """Specular-spot candidates and silhouette rays of a mirror ball in one depth frame (paper §4.3).
 
     Parameters
@@ -715,6 +729,9 @@ def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.nda
     emitter : (3,) array, optional
         Emitter position in the depth camera's frame (metres). Without it no spot candidates are made
         (their normals are unknown) and the hole's edge is taken on all sides (no shadow modelled).
+    near : (centre, radius), optional
+        A predicted ball (world frame, metres): only the image region around it (grown by 60% of the
+        radius and 4 pixels) is looked at (per-frame location; much faster on large images).
 
     Returns
     -------
@@ -735,32 +752,47 @@ def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.nda
     bounds = _box_bounds(box)
     H, W = depth.shape
     x0, x1, y0, y1 = 0, W, 0, H
+    cube = np.array([[a, b, c] for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)], float)
     if bounds is not None:
         # only the image rectangle that can show the box (plus a pixel for the neighbours)
         lo, hi = bounds
-        corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
-        cc = (corners - t) @ Rw
-        if (cc[:, 2] > 1e-6).all():
-            u = intrinsics.fx * cc[:, 0] / cc[:, 2] + intrinsics.cx
-            v = intrinsics.fy * cc[:, 1] / cc[:, 2] + intrinsics.cy
-            x0, x1 = int(np.clip(np.floor(u.min()) - 2, 0, W)), int(np.clip(np.ceil(u.max()) + 3, 0, W))
-            y0, y1 = int(np.clip(np.floor(v.min()) - 2, 0, H)), int(np.clip(np.ceil(v.max()) + 3, 0, H))
-    z = np.asarray(depth[y0:y1, x0:x1], dtype=np.float64)
+        rect = _project_rect(0.5 * (lo + hi) + 0.5 * (hi - lo) * cube, pose, intrinsics, 2.0)
+        if rect is not None:
+            x0, x1, y0, y1 = rect
+    if near is not None:
+        c_n, r_n = np.asarray(near[0], float).reshape(3), float(near[1])
+        rect = _project_rect(c_n + 1.6 * r_n * cube, pose, intrinsics, 4.0)
+        if rect is not None:
+            x0, x1, y0, y1 = max(x0, rect[0]), min(x1, rect[1]), max(y0, rect[2]), min(y1, rect[3])
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return BallCues(spots=np.empty((0, 6)), rays=np.empty((0, 7)))
+    z = np.asarray(depth[y0:y1, x0:x1], dtype=np.float32)
     valid = np.isfinite(z) & (z > 0)
-    vv, uu = np.nonzero(valid)
-    xr = (uu + x0 - intrinsics.cx) / intrinsics.fx
-    yr = (vv + y0 - intrinsics.cy) / intrinsics.fy
-    zv = z[vv, uu]
-    pc = np.stack([xr * zv, yr * zv, zv], axis=1)
-    pw = pc @ Rw.T + t
-    inside = in_box(pw, box)
-    inbox = np.zeros(z.shape, bool)
-    inbox[vv[inside], uu[inside]] = True
+    zz = np.where(valid, z, np.float32(0.0))
+    xr = ((np.arange(x0, x1) - intrinsics.cx) / intrinsics.fx).astype(np.float32)[None, :]
+    yr = ((np.arange(y0, y1) - intrinsics.cy) / intrinsics.fy).astype(np.float32)[:, None]
+    R32 = Rw.astype(np.float32)
+    # world coordinates of every pixel, component by component: p_w = R (x z, y z, z) + t
+    pw = [zz * (R32[k, 0] * xr + R32[k, 1] * yr + R32[k, 2]) + np.float32(t[k]) for k in range(3)]
+    if bounds is not None:
+        lo, hi = bounds
+        inbox = valid.copy()
+        for k in range(3):
+            inbox &= (pw[k] >= lo[k]) & (pw[k] <= hi[k])
+    else:
+        inbox = np.zeros(z.shape, bool)
+        vv, uu = np.nonzero(valid)
+        inbox[vv, uu] = in_box(np.stack([pw[k][vv, uu] for k in range(3)], axis=1).astype(np.float64), box)
     bg = valid & ~inbox
+    vv, uu = np.nonzero(inbox)
+    zv = z[vv, uu].astype(np.float64)
+    pc = np.stack([(uu + x0 - intrinsics.cx) / intrinsics.fx * zv, (vv + y0 - intrinsics.cy) / intrinsics.fy * zv,
+                   zv], axis=1)
+    pw_in = pc @ Rw.T + t
     # spot candidates (world point + world bisector normal)
-    if emitter is not None and inside.any():
-        nrm = bisector_normals(pc[inside], emitter) @ Rw.T
-        spots = np.hstack([pw[inside], nrm])
+    if emitter is not None and len(pc):
+        nrm = bisector_normals(pc, emitter) @ Rw.T
+        spots = np.hstack([pw_in, nrm])
     else:
         spots = np.empty((0, 6))
     # silhouette rays: hole pixel -> background neighbour towards the emitter
@@ -779,7 +811,7 @@ def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.nda
         vm = py + y0 + 0.5 * dv
         d = np.stack([(um - intrinsics.cx) / intrinsics.fx, (vm - intrinsics.cy) / intrinsics.fy,
                       np.ones(len(um))], axis=1)
-        zb = z[py + dv, px + du]                                 # background depth (z) beside the hole
+        zb = z[py + dv, px + du].astype(np.float64)              # background depth (z) beside the hole
         out.append(np.hstack([d, zb[:, None]]))
     if out:
         r = np.concatenate(out)
