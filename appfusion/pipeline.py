@@ -61,6 +61,9 @@ class ScanConfig:
     rho_d_estimator : {"lsq", "percentile"}
         rho_d and rho_s by the joint least squares of Eq. 5 (default) or by the paper's Eq. 6 + 8
         (:class:`appfusion.rgb_pass.RGBPass`).
+    rgb_split : bool
+        Let the RGB pass split off the part of an IR cluster that shows far less specular reflection
+        in colour (:meth:`appfusion.rgb_pass.RGBPass.split_by_specular`).
     frame_stride : int
         Use every n-th frame of each pass.
     ball_radius_m : float or None
@@ -86,6 +89,7 @@ class ScanConfig:
     rho_d_percentile: float = 10.0
     rho_d_bins: int = 64
     rho_d_estimator: str = "lsq"
+    rgb_split: bool = True
     frame_stride: int = 1
     ball_radius_m: float | None = None
     mirror_reflectance: float = 1.0
@@ -755,9 +759,18 @@ class ScanRunner:
             self._note(f"rgb: {no_marker} frames without a visible marker were skipped (no white reference yet)")
         if lost:
             self._note(f"rgb: tracking lost in {lost} frames")
+        splits = self.rgb.split_by_specular() if self.config.rgb_split and not self._painted else []
+        for c, new, n in splits:
+            self._note(f"rgb: {n} points of cluster {c} show far less specular reflection in colour than the "
+                       f"rest (a material the IR never showed a highlight of): new cluster {new}")
+        if self.config.rgb_split and not self._painted and self.config.k_clusters is None:
+            for i, j in self.rgb.merge_alike():
+                self._note(f"rgb: clusters {i} and {j} have the same alpha and rho_s: merged")
         r = self.rgb.result()
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
-                            "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s))}
+                            "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
+                            "labels": self.rgb.labels_caller_order(),
+                            "alpha": np.asarray(self.rgb.alphas, np.float32)}
         if r.heldout_rss is not None:
             self._note("rgb: model ladder (held-out RSS diffuse / Ward): " + "; ".join(
                 f"cluster {c} {m} ({a:.3g} / {b:.3g})" for c, (m, (a, b)) in enumerate(zip(r.model, r.heldout_rss))))
@@ -769,7 +782,10 @@ class ScanRunner:
 
     # -- labels and painting ---------------------------------------------------------------------------
     def _current_labels(self) -> np.ndarray:
-        if getattr(self, "_ir_result", None) is not None:
+        rgb = getattr(self, "_rgb_result", None)
+        if rgb is not None and "labels" in rgb:             # the RGB pass refined the IR clusters
+            base = rgb["labels"]
+        elif getattr(self, "_ir_result", None) is not None:
             base = self._ir_result["labels"]
         elif self.points is not None:
             base = np.zeros(len(self.points[0]), np.int32)
@@ -833,6 +849,15 @@ class ScanRunner:
             m = min(k, len(ir["alpha"]))
             alpha[:m], sigma[:m] = ir["alpha"][:m], ir["alpha_sigma"][:m]
             model[:m] = ["ward" if f else "diffuse" for f in ir["fitted"][:m]]
+        if rgb is not None and "labels" in rgb and "alpha" in rgb:
+            # the RGB pass refined the clusters (split / merged): its alphas are the clusters' alphas;
+            # an IR sigma is kept where the cluster's alpha is an IR cluster's own
+            ra = np.asarray(rgb["alpha"], np.float32)
+            m = min(k, len(ra))
+            alpha[:m] = ra[:m]
+            sig_ir = {float(a): float(s_) for a, s_ in zip(ir["alpha"], ir["alpha_sigma"])} if ir is not None else {}
+            sigma[:m] = [sig_ir.get(float(a), 0.0) for a in ra[:m]]
+            model[:m] = ["ward"] * m
         rho_s = np.zeros((k, 3), np.float32)
         rho_d = np.full((len(P), 3), 0.5, np.float32)
         if rgb is not None:

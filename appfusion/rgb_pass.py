@@ -622,6 +622,112 @@ class RGBPass:
         rd = np.where(use[:, None], np.maximum(rd, 0.0), rd_pct)
         return rd, rho_s, den
 
+    def split_by_specular(self, ratio: float = 0.35, k_nn: int = 48, min_fraction: float = 0.08,
+                          min_samples: int = 3) -> list[tuple[int, int, int]]:
+        """Split off the part of a cluster whose colour shows much less specular reflection.
+
+        The IR pass clusters on the IR highlights it saw (§5.2); a material whose highlight the IR
+        never showed (a matte label next to a glossy paint, seen only from above its own height)
+        ends up in a glossy cluster. The RGB samples see the environment's lights from every view,
+        so the specular scale can be measured locally: for each point, the pooled within-point
+        regression slope of L on S over its ``k_nn`` nearest points (the per-point slope of
+        :meth:`_lsq`, pooled over a neighbourhood because one point's views vary S too little).
+        Points of cluster ``c`` whose local slope is below ``ratio`` times the cluster's rho_s by more
+        than three standard errors (from the neighbourhood's residuals) form a
+        new, diffuse cluster when they hold at least ``min_fraction`` of the cluster's points: no
+        data measured its roughness (the IR showed no highlight, and S was taken with the glossy
+        cluster's alpha), so a lobe with a borrowed alpha would be a guess -- on the demo it put sharp
+        sun highlights on the matte label when relit. Its rho_d is then ``mean L / D``. The per-point
+        sums do not depend on the labels, so nothing is recomputed.
+
+        Returns
+        -------
+        list of (cluster, new cluster, points moved)
+        """
+        from scipy.spatial import cKDTree
+
+        if self.estimator != "lsq" or not self.counts.any():
+            return []
+        cnt = self.counts.astype(np.float64)[:, None]
+        use = self.counts >= min_samples
+        nn = np.where(use[:, None], cnt, 1.0)
+        cov = np.where(use[:, None], self.sum_sl - self.sum_s * self.sum_l / nn, 0.0).sum(1)
+        var = np.where(use[:, None], np.maximum(self.sum_s2 - self.sum_s * self.sum_s / nn, 0.0), 0.0).sum(1)
+        k = int(min(k_nn, len(self.positions)))
+        _, nb = cKDTree(self.positions).query(self.positions, k=k)
+        nb = np.asarray(nb).reshape(len(self.positions), -1)
+        same = self.labels[nb] == self.labels[:, None]                 # neighbours of the same cluster
+        vll = np.where(use[:, None], np.maximum(self.sum_l2 - self.sum_l * self.sum_l / nn, 0.0), 0.0).sum(1)
+        dof_p = np.where(use, 3.0 * (self.counts - 1), 0.0)
+        num = np.sum(np.where(same, cov[nb], 0.0), axis=1)
+        den = np.sum(np.where(same, var[nb], 0.0), axis=1)
+        local = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+        # its standard error from the neighbourhood's residual: only a slope *significantly* below
+        # the cluster's counts (views that never caught a highlight say nothing about one)
+        rss = np.maximum(np.sum(np.where(same, vll[nb], 0.0), axis=1) - local * num, 0.0)
+        dof = np.maximum(np.sum(np.where(same, dof_p[nb], 0.0), axis=1) - 1.0, 1.0)
+        se = np.sqrt(rss / dof / np.where(den > 0, den, np.inf))
+        rs = self.result().rho_s.mean(axis=1)
+        out = []
+        for c in range(self.n_clusters):
+            m = self.labels == c
+            if not self.specular[c] or rs[c] <= 0 or m.sum() < 2:
+                continue
+            low = m & np.isfinite(local) & (local + 3.0 * se < ratio * rs[c])
+            if low.sum() < min_fraction * m.sum() or (m & ~low).sum() < min_fraction * m.sum():
+                continue
+            new = self.n_clusters
+            self.labels = np.where(low, new, self.labels)
+            self.alphas = np.r_[self.alphas, self.alphas[c]]
+            self.specular = np.r_[self.specular, False]
+            self.model = list(self.model) + ["diffuse"]
+            self._spec_point = self.specular[self.labels]
+            self.n_clusters += 1
+            out.append((c, new, int(low.sum())))
+        return out
+
+    def merge_alike(self, alpha_rel: float = 0.3, rho_rel: float = 0.25) -> list[tuple[int, int]]:
+        """Merge clusters that are one material by every measurement: alpha (IR) within ``alpha_rel``
+        and rho_s (RGB, mean over channels) within ``rho_rel`` of their means. The merged cluster's
+        alpha is the point-weighted mean; each point keeps the S sums of its own alpha. Returns the
+        (kept, removed) pairs, in the cluster numbering at the time of each merge."""
+        out = []
+        while self.n_clusters > 1:
+            rs = self.result().rho_s.mean(axis=1)
+            cnt = np.bincount(self.labels, minlength=self.n_clusters)
+            pair = None
+            for i in range(self.n_clusters):
+                for j in range(i + 1, self.n_clusters):
+                    if cnt[i] == 0 or cnt[j] == 0 or self.specular[i] != self.specular[j]:
+                        continue
+                    a, b = self.alphas[i], self.alphas[j]
+                    if abs(a - b) > alpha_rel * 0.5 * (a + b):
+                        continue
+                    if abs(rs[i] - rs[j]) > rho_rel * max(0.5 * (rs[i] + rs[j]), 1e-6):
+                        continue
+                    pair = (i, j)
+                    break
+                if pair:
+                    break
+            if pair is None:
+                break
+            i, j = pair
+            self.alphas = self.alphas.copy()
+            self.alphas[i] = (cnt[i] * self.alphas[i] + cnt[j] * self.alphas[j]) / (cnt[i] + cnt[j])
+            self.alphas = np.delete(self.alphas, j)
+            self.specular = np.delete(self.specular, j)
+            self.model = [m for c, m in enumerate(self.model) if c != j]
+            lab = np.where(self.labels == j, i, self.labels)
+            self.labels = np.where(lab > j, lab - 1, lab)
+            self._spec_point = self.specular[self.labels]
+            self.n_clusters -= 1
+            out.append((i, j))
+        return out
+
+    def labels_caller_order(self) -> np.ndarray:
+        """Current cluster labels in the caller's point order."""
+        return self.labels[self._rank].astype(np.int32)
+
     def result(self) -> RGBResult:
         """Current estimates (cheap: can be called after every frame for live display)."""
         rd, counts = self.rho_d()

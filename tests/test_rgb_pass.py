@@ -178,6 +178,38 @@ def test_diffuse_clusters_skip_their_tables(sphere_run):
         RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, specular=[True])
 
 
+def test_split_by_specular_finds_the_material_the_ir_merged(sphere_run):
+    """One IR cluster holding a glossy and a nearly matte half: the colour samples' local specular
+    slope splits the matte half off as a diffuse cluster; merge_alike leaves distinct ones apart."""
+    sc, poses, _, rp0, _ = sphere_run
+    one = np.zeros(len(sc.positions), np.int64)
+    alpha = np.array([float(sc.alphas[0])])
+    rp = RGBPass(sc.positions, sc.normals, one, alpha, sc.env, tables=rp0.tables)
+    rng = np.random.default_rng(12)
+    D0 = rp0.tables.D(sc.normals).astype(np.float64)
+    rs_true = np.where(sc.labels == 1, 0.4, 0.01)[:, None]
+    for T in poses:
+        C = T[:3, 3]
+        wo = C - sc.positions
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
+        S0 = rp0.tables.S(sc.normals[vis], wo[vis], np.full(len(vis), alpha[0])).astype(np.float64)
+        L = (D0[vis] * sc.rho_d[vis] + S0 * rs_true[vis]) * rng.normal(1, 0.02, (len(vis), 3))
+        ok = (L.max(axis=1) < 0.95) & (L.max(axis=1) > 0.02)
+        rp.add_samples(vis[ok], L[ok], C)
+    splits = rp.split_by_specular(k_nn=24)
+    assert len(splits) == 1 and splits[0][:2] == (0, 1)
+    lab = rp.labels_caller_order()
+    seen = rp.result().observed
+    moved = (lab == 1) & seen
+    assert (sc.labels[moved] == 0).mean() > 0.9                  # what moved is the matte half
+    assert moved.sum() > 0.3 * ((sc.labels == 0) & seen).sum()
+    res = rp.result()
+    assert res.model[1] == "diffuse" and (res.rho_s[1] == 0).all() and res.model[0] == "ward"
+    assert rp.merge_alike() == []                                # glossy and diffuse stay apart
+    assert rp.n_clusters == 2
+
+
 def test_repeated_points_in_one_call_equal_separate_calls(sphere_run):
     sc = sphere_run[0]
     C = np.array([0.3, 0.2, 0.4])
