@@ -539,7 +539,9 @@ class ScanRunner:
         radius = cfg.ball_radius_m or extra.get("ball_radius_m")
         rho_mirror = ball.get("reflectance", cfg.mirror_reflectance)
         emitter = meta.get("emitter_position_m")
-        on_plane = getattr(cfg, "ball_on_plane", None) or ball.get("on_plane", "auto")
+        on_plane = getattr(cfg, "ball_on_plane", None)
+        if on_plane is None:
+            on_plane = ball.get("on_plane", "auto")
         light = LightingPass(n=cfg.envmap_n, radius=radius, rho_mirror=rho_mirror,
                              fit_kwargs={"max_rms_rel": cfg.ball_max_scatter}, emitter=emitter,
                              on_plane=on_plane, per_frame_center=emitter is not None)

@@ -1088,11 +1088,11 @@ def fit_mirror_ball(spots: Any, rays: Any, radius: float | None = None, *, on_pl
         raise EstimationError(f"{where}: no sphere hypothesis from {len(S)} spot candidates "
                               f"({len(Q)} silhouette rays); the ball's specular spot was not seen")
 
-    def refine(c, R, plane):
+    def refine(c, R, plane, rounds=5):
         band_s, band_r = 4.0 * tau_s, 2.0 * tau_r
         si = np.zeros(len(S), bool)
         ri = np.zeros(len(Q), bool)
-        for it in range(5):
+        for it in range(rounds):
             es = np.linalg.norm(_spot_residuals(c, R, S), axis=1) if len(S) else np.empty(0)
             er = np.abs(_ray_residuals(c, R, Q)) if len(Q) else np.empty(0)
             si, ri = es < band_s, er < band_r
@@ -1114,17 +1114,18 @@ def fit_mirror_ball(spots: Any, rays: Any, radius: float | None = None, *, on_pl
         cost = float(np.minimum((es / tau_s) ** 2, 1.0).sum() + np.minimum((er / tau_r) ** 2, 1.0).sum())
         return c, float(R), cost, es < band_s, er < band_r
 
+    # every start gets one round; the best by MSAC cost gets the full refinement
     best = None
     for c, R in cands:
         try:
-            out = refine(np.asarray(c, float), float(R), None)
+            out = refine(np.asarray(c, float), float(R), None, rounds=1)
         except EstimationError:
             continue
         if best is None or out[2] < best[2]:
             best = out
     if best is None:
         raise EstimationError(f"{where}: every sphere hypothesis diverged")
-    c, R, _, si, ri = best
+    c, R, _, si, ri = refine(best[0], best[1], None)
 
     def stats(c, R, si, ri, plane):
         _, _, J, f = _mirror_lsq(S[si], Q[ri], c, R, radius, plane, s_spot)
