@@ -407,6 +407,7 @@ def test_view_samples_and_truth_free_wavelet_skip():
     w = wavelet_skip(env, P, N, labels, np.array([0.3]), np.array([True]), [pose], K)
     assert 0 < w["nodes_built"] < w["nodes_total"] and w["max_rel_diff"] < 5e-3 and w["samples"] == len(idx)
     assert w["eager_cpu_s"] > 0 and w["saving"] is not None
+    assert w["node_work_saved"] == pytest.approx(1 - w["nodes_built"] / w["nodes_total"])   # one alpha
     none = wavelet_skip(env, P, N, labels, np.array([0.3]), np.array([False]), [pose], K)
     assert none["saving"] is None and "no specular" in none["note"]
 
