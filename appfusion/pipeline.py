@@ -71,8 +71,13 @@ class ScanConfig:
     ball_max_scatter : float
         Largest RMS scatter of the ball's depth points about the fitted sphere, relative to its
         radius: a mirror returns weak, noisy depth (§4.3), so this is looser than a matte sphere's.
-    mirror_reflectance : float
-        Reflectance of the mirror ball (divided out of the environment map).
+    mirror_reflectance : float or None
+        Reflectance of the mirror ball (divided out of the environment map); None: the session's
+        ``extra.mirror_ball.reflectance``, else 1.0. A real chrome ball reflects ~0.6-0.7: give it, or
+        every rho_d comes out that much too low.
+    ball_on_plane : bool, "auto" or None
+        The ball rests on the marker plane (centre height = radius): True, False, "auto" (when the
+        free fit agrees), None: the session's ``extra.mirror_ball.on_plane``, else "auto".
     box_height_m : float
         Height of the object box above the marker plane.
     texture_size : int
@@ -92,7 +97,8 @@ class ScanConfig:
     rgb_split: bool = True
     frame_stride: int = 1
     ball_radius_m: float | None = None
-    mirror_reflectance: float = 1.0
+    mirror_reflectance: float | None = None
+    ball_on_plane: bool | str | None = None
     ball_max_scatter: float = 0.2
     box_height_m: float = 0.30
     texture_size: int = 1024
@@ -537,7 +543,7 @@ class ScanRunner:
         extra = meta.get("extra") or {}
         ball = extra.get("mirror_ball") or {}
         radius = cfg.ball_radius_m or extra.get("ball_radius_m")
-        rho_mirror = ball.get("reflectance", cfg.mirror_reflectance)
+        rho_mirror = cfg.mirror_reflectance if cfg.mirror_reflectance is not None else ball.get("reflectance", 1.0)
         emitter = meta.get("emitter_position_m")
         on_plane = getattr(cfg, "ball_on_plane", None)
         if on_plane is None:

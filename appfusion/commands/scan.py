@@ -69,6 +69,10 @@ def register(sub) -> None:
     p.add_argument("--clusters", type=int, default=None, help="number of specular clusters (default: automatic)")
     p.add_argument("--stride", type=int, default=1, help="use every n-th frame")
     p.add_argument("--ball-radius", type=float, default=None, help="mirror-ball radius in metres, if known")
+    p.add_argument("--mirror-reflectance", type=float, default=None,
+                   help="reflectance of the mirror ball (chrome ~0.65; default: the session's, else 1.0)")
+    p.add_argument("--ball-on-plane", choices=("auto", "yes", "no"), default=None,
+                   help="the ball rests on the marker sheet (default: the session's setting, else auto)")
     p.add_argument("--skip-bad", action="store_true", help="skip damaged frames instead of stopping")
     p.add_argument("--fresh", action="store_true", help="ignore checkpoints of an earlier run in --out")
     p.add_argument("--no-progress", action="store_true")
@@ -96,7 +100,11 @@ def run(args) -> int:
 
     if sum(bool(x) for x in (args.session, args.demo, args.device)) != 1:
         raise AppFusionError("give a SESSION to scan, --demo, or --device NAME (exactly one of them)")
-    cfg = ScanConfig(frame_stride=args.stride, ball_radius_m=args.ball_radius, k_clusters=args.clusters)
+    if args.mirror_reflectance is not None and not 0 < args.mirror_reflectance <= 1:
+        raise AppFusionError(f"--mirror-reflectance must be in (0, 1], got {args.mirror_reflectance}")
+    on_plane = {"auto": "auto", "yes": True, "no": False, None: None}[args.ball_on_plane]
+    cfg = ScanConfig(frame_stride=args.stride, ball_radius_m=args.ball_radius, k_clusters=args.clusters,
+                     mirror_reflectance=args.mirror_reflectance, ball_on_plane=on_plane)
     if args.points:
         cfg.n_points = args.points
     if args.device:
