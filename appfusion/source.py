@@ -167,6 +167,46 @@ class Source(abc.ABC):
     def _frames(self) -> Iterator[Frame]: ...
 
 
+class WrappedSource(Source):
+    """A source that hands streams, intrinsics, meta and controls through to ``inner`` and opens and
+    closes it; subclasses change what they need (the GUI's paced player, the live scan's device with
+    the marker layout added). ``_frames`` iterates ``inner``."""
+
+    def __init__(self, inner: Source):
+        super().__init__()
+        self.inner = inner
+        self.name = getattr(inner, "name", "source")
+
+    @property
+    def caps(self):
+        return self.inner.caps
+
+    @property
+    def intrinsics(self):
+        return self.inner.intrinsics
+
+    @property
+    def meta(self):
+        return self.inner.meta
+
+    @property
+    def controls(self):
+        return self.inner.controls
+
+    def set_control(self, name, value):
+        return self.inner.set_control(name, value)
+
+    def _open(self) -> None:
+        self.inner.open()
+        self.name = getattr(self.inner, "name", self.name)
+
+    def _close(self) -> None:
+        self.inner.close()
+
+    def _frames(self) -> Iterator[Frame]:
+        return iter(self.inner)
+
+
 class IndexedRecording(Source):
     """A recording whose frames can be decoded one by one: ``frame(i)`` and ``__len__``.
 

@@ -502,6 +502,17 @@ def in_box(points: np.ndarray, box: Any) -> np.ndarray:
     return ((points >= b[0]) & (points <= b[1])).all(axis=-1)
 
 
+def _check_depth_pose(depth, intrinsics: Intrinsics, pose) -> tuple[np.ndarray, np.ndarray]:
+    """The depth image (matching the intrinsics) and a finite 4x4 pose, or a clear error."""
+    depth = np.asarray(depth)
+    if depth.shape != intrinsics.shape:
+        raise AppFusionError(f"depth image of shape {depth.shape} does not match intrinsics {intrinsics.shape}")
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise AppFusionError(f"depth pose must be a finite 4x4 matrix, got shape {pose.shape}")
+    return depth, pose
+
+
 def points_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
                       box: Any = None, stride: int = 1) -> np.ndarray:
     """World points (M, 3) of a depth image, optionally cropped to the object box.
@@ -519,12 +530,7 @@ def points_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarra
     stride : int
         Use every ``stride``-th pixel in both directions.
     """
-    depth = np.asarray(depth)
-    if depth.shape != intrinsics.shape:
-        raise AppFusionError(f"depth image of shape {depth.shape} does not match intrinsics {intrinsics.shape}")
-    pose = np.asarray(pose, dtype=np.float64)
-    if pose.shape != (4, 4) or not np.isfinite(pose).all():
-        raise AppFusionError(f"depth pose must be a finite 4x4 matrix, got shape {pose.shape}")
+    depth, pose = _check_depth_pose(depth, intrinsics, pose)
     s = max(int(stride), 1)
     z = depth[::s, ::s].astype(np.float64)
     rays = intrinsics.rays()[::s, ::s].astype(np.float64)
@@ -740,12 +746,7 @@ def ball_cues_from_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.nda
         background, through the midpoint of the two pixels, kept when the ray meets the box in front
         of that background.
     """
-    depth = np.asarray(depth)
-    if depth.shape != intrinsics.shape:
-        raise AppFusionError(f"depth image of shape {depth.shape} does not match intrinsics {intrinsics.shape}")
-    pose = np.asarray(pose, dtype=np.float64)
-    if pose.shape != (4, 4) or not np.isfinite(pose).all():
-        raise AppFusionError(f"depth pose must be a finite 4x4 matrix, got shape {pose.shape}")
+    depth, pose = _check_depth_pose(depth, intrinsics, pose)
     if box is None:
         raise AppFusionError("mirror-ball cues need the object box (it separates the ball from the background)")
     Rw, t = pose[:3, :3], pose[:3, 3]

@@ -46,6 +46,21 @@ def test_sphere_rho_d_and_rho_s_recovered(sphere_run):
     assert not res.notes
 
 
+def _model_samples(sc, poses, tables, point_alpha, point_rho_s, rng, noise):
+    """Per pose: (visible points, Eq. 5 radiance with relative noise, camera centre), clear of the
+    grazing, dark and saturated cut-offs."""
+    D0 = tables.D(sc.normals).astype(np.float64)
+    for T in poses:
+        C = T[:3, 3]
+        wo = C - sc.positions
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
+        S0 = tables.S(sc.normals[vis], wo[vis], point_alpha[vis]).astype(np.float64)
+        L = (D0[vis] * sc.rho_d[vis] + S0 * point_rho_s[vis]) * rng.uniform(1 - noise, 1 + noise, (len(vis), 3))
+        ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)
+        yield vis[ok], L[ok], C
+
+
 def test_unobserved_points_take_their_cluster_median(sphere_run):
     sc, _, _, rp, res = sphere_run
     un = ~res.observed
@@ -93,20 +108,9 @@ def test_lsq_estimator_equals_the_stored_sample_least_squares(sphere_run):
     sc, poses, _, rp0, _ = sphere_run
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
                  estimator="lsq", min_lsq_samples=1)
-    rng = np.random.default_rng(5)
-    D0 = rp0.tables.D(sc.normals).astype(np.float64)
     stored = []
-    for T in poses[:12]:
-        C = T[:3, 3]
-        wo = C - sc.positions
-        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)   # clear of the grazing cut-off
-        wo = wo[vis]
-        S0 = rp0.tables.S(sc.normals[vis], wo, sc.alphas[sc.labels[vis]]).astype(np.float64)
-        L = D0[vis] * sc.rho_d[vis] + S0 * sc.rho_s[sc.labels[vis]]
-        L *= rng.uniform(0.9, 1.1, size=L.shape)               # noise, so that the fit is not exact
-        ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)     # clear of the saturated / dark cut-offs
-        vis, L = vis[ok], L[ok]
+    for vis, L, C in _model_samples(sc, poses[:12], rp0.tables, sc.alphas[sc.labels], sc.rho_s[sc.labels],
+                                    np.random.default_rng(5), 0.1):
         assert rp.add_samples(vis, L, C) == len(vis)
         stored.append((vis, L, np.broadcast_to(C, (len(vis), 3))))
     res = rp.result()
@@ -133,18 +137,10 @@ def test_model_ladder_picks_diffuse_for_a_matte_cluster_and_ward_for_a_glossy_on
     fitted as diffuse (rho_s exactly 0, no spurious lobe), a glossy one keeps its Ward lobe."""
     sc, poses, _, rp0, _ = sphere_run
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables)
-    rng = np.random.default_rng(9)
-    D0 = rp0.tables.D(sc.normals).astype(np.float64)
     rho_s = np.array([[0.0, 0.0, 0.0], [0.3, 0.3, 0.3]])        # cluster 0 matte, cluster 1 glossy
-    for T in poses:
-        C = T[:3, 3]
-        wo = C - sc.positions
-        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
-        S0 = rp0.tables.S(sc.normals[vis], wo[vis], sc.alphas[sc.labels[vis]]).astype(np.float64)
-        L = (D0[vis] * sc.rho_d[vis] + S0 * rho_s[sc.labels[vis]]) * rng.normal(1, 0.03, (len(vis), 3))
-        ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)
-        rp.add_samples(vis[ok], L[ok], C)
+    for vis, L, C in _model_samples(sc, poses, rp0.tables, sc.alphas[sc.labels], rho_s[sc.labels],
+                                    np.random.default_rng(9), 0.03):
+        rp.add_samples(vis, L, C)
     res = rp.result()
     assert res.model == ["diffuse", "ward"], (res.model, res.heldout_rss)
     assert (res.rho_s[0] == 0).all() and abs(res.rho_s[1] / 0.3 - 1).max() < 0.05
@@ -185,18 +181,10 @@ def test_split_by_specular_finds_the_material_the_ir_merged(sphere_run):
     one = np.zeros(len(sc.positions), np.int64)
     alpha = np.array([float(sc.alphas[0])])
     rp = RGBPass(sc.positions, sc.normals, one, alpha, sc.env, tables=rp0.tables)
-    rng = np.random.default_rng(12)
-    D0 = rp0.tables.D(sc.normals).astype(np.float64)
-    rs_true = np.where(sc.labels == 1, 0.4, 0.01)[:, None]
-    for T in poses:
-        C = T[:3, 3]
-        wo = C - sc.positions
-        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
-        S0 = rp0.tables.S(sc.normals[vis], wo[vis], np.full(len(vis), alpha[0])).astype(np.float64)
-        L = (D0[vis] * sc.rho_d[vis] + S0 * rs_true[vis]) * rng.normal(1, 0.02, (len(vis), 3))
-        ok = (L.max(axis=1) < 0.95) & (L.max(axis=1) > 0.02)
-        rp.add_samples(vis[ok], L[ok], C)
+    rs_true = np.repeat(np.where(sc.labels == 1, 0.4, 0.01)[:, None], 3, axis=1)
+    for vis, L, C in _model_samples(sc, poses, rp0.tables, np.full(len(sc.labels), alpha[0]), rs_true,
+                                    np.random.default_rng(12), 0.02):
+        rp.add_samples(vis, L, C)
     splits = rp.split_by_specular(k_nn=24)
     assert len(splits) == 1 and splits[0][:2] == (0, 1)
     lab = rp.labels_caller_order()

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from appfusion.errors import AppFusionError
-from appfusion.source import Source
+from appfusion.source import Source, WrappedSource
 
 #: frames recorded per live pass when ``--pass-frames`` does not say (device at 30 fps). From the
 #: paper's guidance: §6 averages "a number of" emitter-off IR frames (``DEFAULT_DARK_FRAMES``, 1 s)
@@ -222,7 +222,7 @@ def step_guidance(step: tuple[str, int | None, bool | None], has_emitter_control
     return GUIDANCE.get(name, name)
 
 
-class LiveDevice(Source):
+class LiveDevice(WrappedSource):
     """A live device with the printed marker layout added to its meta (``extra.markers``), so that the
     live session records it (the tracker, the white balance and the RGB-pass poses read it).
 
@@ -232,18 +232,9 @@ class LiveDevice(Source):
     is_recording = False
 
     def __init__(self, inner: Source, extra: dict[str, Any]):
-        super().__init__()
-        self.inner = inner
+        super().__init__(inner)
         self.extra = dict(extra)
         self.name = getattr(inner, "name", "device")
-
-    @property
-    def caps(self):
-        return self.inner.caps
-
-    @property
-    def intrinsics(self):
-        return self.inner.intrinsics
 
     @property
     def meta(self):
@@ -251,28 +242,11 @@ class LiveDevice(Source):
         m["extra"] = {**dict(m.get("extra") or {}), **self.extra}
         return m
 
-    @property
-    def controls(self):
-        return self.inner.controls
-
-    def set_control(self, name, value):
-        return self.inner.set_control(name, value)
-
     def select_pass(self, name: str):
         select = getattr(self.inner, "select_pass", None)
         if callable(select):
             return select(name)
         return None
-
-    def _open(self) -> None:
-        self.inner.open()
-        self.name = getattr(self.inner, "name", self.name)
-
-    def _close(self) -> None:
-        self.inner.close()
-
-    def _frames(self) -> Iterator:
-        return iter(self.inner)
 
 
 class _Interrupts:

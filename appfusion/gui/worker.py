@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from ..errors import AppFusionError, DeviceError, PassMissingError, SourceError
-from ..source import Source
+from ..source import Source, WrappedSource
 
 #: worker states, as the GUI shows them
 STATES = ("idle", "running", "paused", "stopping", "finished", "stopped", "source-error", "error")
@@ -129,7 +129,7 @@ class SessionRecorder:
             self.writer = None
 
 
-class PacedSource(Source):
+class PacedSource(WrappedSource):
     """A source wrapper that paces recordings, records live frames and remembers source errors.
 
     Parameters
@@ -157,8 +157,7 @@ class PacedSource(Source):
     MAX_GAP_S = 1.0
 
     def __init__(self, inner: Source, realtime: bool = True, recorder: SessionRecorder | None = None):
-        super().__init__()
-        self.inner = inner
+        super().__init__(inner)
         self.realtime = bool(realtime) and bool(getattr(inner, "is_recording", False))
         self.recorder = recorder
         self.name = getattr(inner, "name", "source")
@@ -175,25 +174,6 @@ class PacedSource(Source):
         if name.startswith("__") or name == "inner":
             raise AttributeError(name)
         return getattr(self.inner, name)
-
-    @property
-    def caps(self):
-        return self.inner.caps
-
-    @property
-    def intrinsics(self):
-        return self.inner.intrinsics
-
-    @property
-    def meta(self):
-        return self.inner.meta
-
-    @property
-    def controls(self):
-        return self.inner.controls
-
-    def set_control(self, name, value):
-        return self.inner.set_control(name, value)
 
     def __len__(self) -> int:
         return len(self.inner)
