@@ -75,6 +75,8 @@ SCAN_METRICS = {
     "rho_d_median_rel_err": "scan_rho_d_median_rel_err",
     "rho_s_rel_err": "scan_rho_s_rel_err",
     "envmap_median_rel_err": "scan_envmap_median_rel_err",
+    "envmap_energy_rel_err": "scan_envmap_energy_rel_err",
+    "alpha_sharpest_rel_err": "scan_alpha_sharpest_rel_err",
 }
 #: ScanRunner methods timed per scan (stage name in the report)
 _TIMED = {"_stage_ir_calibration": "ir-calibration", "_stage_environment": "environment",
