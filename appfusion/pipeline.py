@@ -34,6 +34,9 @@ from .frame import Frame
 
 #: the passes in the order they are scanned
 PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
+#: version of what the stages compute: bump it when a stage's output changes, so that checkpoints
+#: written by an older engine (``out_dir/state``) are recomputed instead of reused
+CHECKPOINT_VERSION = 2
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -427,13 +430,39 @@ class ScanRunner:
     def state_dir(self) -> Path:
         return self.out_dir / "state"
 
+    def _checkpoint_key(self) -> str:
+        """What a checkpoint was computed from: engine version, the knobs that change results, the
+        recording (path, frame count, creation time)."""
+        cfg = {k: v for k, v in self.config.to_json().items() if k not in ("texture_size", "snapshot_interval_s")}
+        src = self.source
+        meta = src.meta if isinstance(src.meta, dict) else {}
+        ident = {"path": str(getattr(src, "path", getattr(src, "name", ""))),
+                 "frames": len(src) if getattr(src, "is_recording", False) else None,
+                 "created": meta.get("created")}
+        return json.dumps({"engine": CHECKPOINT_VERSION, "config": cfg, "source": ident}, sort_keys=True, default=str)
+
     def _stage_done(self, stage: str) -> bool:
-        return (self.state_dir / f"{stage}.done").exists()
+        """A valid checkpoint of ``stage`` exists: same key (:meth:`_checkpoint_key`) and no earlier
+        stage was recomputed in this run (a recomputed stage invalidates everything after it)."""
+        path = self.state_dir / f"{stage}.done"
+        ok = False
+        if path.exists() and not getattr(self, "_recomputing", False):
+            try:
+                ok = json.loads(path.read_text()).get("key") == self._checkpoint_key()
+            except (OSError, ValueError, AttributeError):
+                ok = False
+            if not ok:
+                self._note(f"{stage}: the checkpoint in {self.state_dir} was made from another recording, "
+                           "configuration or engine version: recomputing")
+        if not ok:
+            self._recomputing = True
+        return ok
 
     def _mark_done(self, stage: str, info: dict | None = None) -> None:
         self.state_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.state_dir / f"{stage}.done.tmp"
-        tmp.write_text(json.dumps({"config": self.config.to_json(), **(info or {})}, default=str))
+        tmp.write_text(json.dumps({"key": self._checkpoint_key(), "config": self.config.to_json(), **(info or {})},
+                                  default=str))
         os.replace(tmp, self.state_dir / f"{stage}.done")
 
     def _save_npz(self, name: str, **arrays) -> None:
@@ -921,7 +950,10 @@ class ScanRunner:
         if self.stopped:
             return self._finish_partial()
         if "ir" in caps.streams and self.ir_profile is not None:
-            self._stage_ir(*ranges[obj])
+            try:
+                self._stage_ir(*ranges[obj])
+            except PassMissingError as e:                  # keep the geometry; the RGB pass can still run
+                self._note(f"ir: {e}; continuing with one cluster and no roughness (diffuse-only model)")
         elif "ir" not in caps.streams:
             self._note("ir: the recording has no IR stream: one specular cluster, roughness not estimated "
                        "(diffuse-only model)")
@@ -934,7 +966,10 @@ class ScanRunner:
                 self._note("rgb: no environment pass and no --envmap: rho_d and rho_s need the lighting; "
                            "the result keeps geometry, clusters and roughness only")
             else:
-                self._stage_rgb(*ranges[rgbp], rgbp)
+                try:
+                    self._stage_rgb(*ranges[rgbp], rgbp)
+                except PassMissingError as e:              # keep geometry, clusters and roughness
+                    self._note(f"rgb: {e}; the result keeps geometry, clusters and roughness only")
         else:
             self._note("rgb: the recording has no RGB pass: rho_d and rho_s cannot be estimated")
         return self._finish_partial()
