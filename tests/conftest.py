@@ -36,3 +36,14 @@ def redwood_dir(real_dir) -> Path:
 @pytest.fixture(scope="session")
 def azure_mkv(real_dir) -> Path:
     return _need(real_dir / "azure-kinect" / "recording.mkv")
+
+
+@pytest.fixture(scope="session")
+def kinect_sphere(tmp_path_factory):
+    """A short synthetic Kinect v1 scan of a glossy sphere (Ward alpha 0.12), 320 x 240, 12 frames a
+    pass, rendered once per test session (the live-scan and pipeline tests share it read-only)."""
+    from replay.synth import render_session
+
+    out = tmp_path_factory.mktemp("kinect") / "sphere"
+    return render_session("sphere", out, frames=12, size=(320, 240), seed=1, detail="test", references=False,
+                          show_progress=False)

@@ -5,22 +5,11 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from appfusion.pipeline import CHECKPOINT_VERSION, ScanConfig, ScanRunner
 from replay.session import SessionReader
 
 SMALL = dict(n_points=3000, texture_size=64, envmap_n=32, hbsab_n=16)
-
-
-@pytest.fixture(scope="module")
-def sphere_session(tmp_path_factory):
-    """A short synthetic Kinect v1 scan of a glossy sphere, 320 x 240, 12 frames a pass."""
-    from replay.synth import render_session
-
-    out = tmp_path_factory.mktemp("pipe") / "sphere"
-    return render_session("sphere", out, frames=12, size=(320, 240), seed=1, detail="test", references=False,
-                          show_progress=False)
 
 
 def _run(session, out, stop_at=None, **cfg):
@@ -34,14 +23,14 @@ def _run(session, out, stop_at=None, **cfg):
     return r, res
 
 
-def test_a_scan_stopped_midway_resumes_from_its_checkpoints(sphere_session, tmp_path):
-    _, full = _run(sphere_session, tmp_path / "full")
+def test_a_scan_stopped_midway_resumes_from_its_checkpoints(kinect_sphere, tmp_path):
+    _, full = _run(kinect_sphere, tmp_path / "full")
     out = tmp_path / "resumed"
-    r1, part = _run(sphere_session, out, stop_at="ir")       # stopped as the IR stage began
+    r1, part = _run(kinect_sphere, out, stop_at="ir")       # stopped as the IR stage began
     state = out / "state"
     assert (state / "geometry.done").exists() and not (state / "rgb.done").exists()
     assert part.info["rho_d_source"].startswith("not estimated")
-    r2, res = _run(sphere_session, out)
+    r2, res = _run(kinect_sphere, out)
     assert any("geometry: reusing the checkpointed geometry" in m for m in r2.messages)
     assert (state / "rgb.done").exists()
     # the resumed scan = the uninterrupted one where it only reused the same geometry
@@ -53,12 +42,12 @@ def test_a_scan_stopped_midway_resumes_from_its_checkpoints(sphere_session, tmp_
     assert json.loads(key)["engine"] == CHECKPOINT_VERSION
 
 
-def test_checkpoints_of_another_configuration_are_recomputed(sphere_session, tmp_path):
+def test_checkpoints_of_another_configuration_are_recomputed(kinect_sphere, tmp_path):
     out = tmp_path / "scan"
-    _run(sphere_session, out)
-    r, res = _run(sphere_session, out, n_points=2000)          # another point count: nothing reusable
+    _run(kinect_sphere, out)
+    r, res = _run(kinect_sphere, out, n_points=2000)          # another point count: nothing reusable
     assert any("checkpoint" in m and "recomputing" in m for m in r.messages)
     assert len(res.positions) == 2000
-    r3, _ = _run(sphere_session, out, n_points=2000)            # same again: all reused
+    r3, _ = _run(kinect_sphere, out, n_points=2000)            # same again: all reused
     assert not any("recomputing" in m for m in r3.messages)
     assert any("reusing the checkpointed" in m for m in r3.messages)

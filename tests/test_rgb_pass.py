@@ -46,6 +46,18 @@ def test_sphere_rho_d_and_rho_s_recovered(sphere_run):
     assert not res.notes
 
 
+def _stored_terms(sc, rp, stored):
+    """Point index, radiance, S and D of every stored sample (the two-sweep references)."""
+    p = np.concatenate([s[0] for s in stored])
+    L = np.concatenate([s[1] for s in stored])
+    C = np.concatenate([s[2] for s in stored])
+    wo = C - sc.positions[p]
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    S = rp.tables.S(sc.normals[p], wo, sc.alphas[sc.labels[p]]).astype(np.float64)
+    D = rp.tables.D(sc.normals[p]).astype(np.float32).astype(np.float64)
+    return p, L, S, D
+
+
 def _model_samples(sc, poses, tables, point_alpha, point_rho_s, rng, noise):
     """Per pose: (visible points, Eq. 5 radiance with relative noise, camera centre), clear of the
     grazing, dark and saturated cut-offs."""
@@ -85,13 +97,7 @@ def test_constant_memory_rho_s_equals_the_two_sweep_solution(sphere_run):
         rp.add_samples(vis, L, C)
         stored.append((vis, L, np.broadcast_to(C, (len(vis), 3))))
     res = rp.result()
-    p = np.concatenate([s[0] for s in stored])
-    L = np.concatenate([s[1] for s in stored])
-    C = np.concatenate([s[2] for s in stored])
-    wo = C - sc.positions[p]
-    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    S = rp.tables.S(sc.normals[p], wo, sc.alphas[sc.labels[p]]).astype(np.float64)
-    D = rp.tables.D(sc.normals[p]).astype(np.float32).astype(np.float64)
+    p, L, S, D = _stored_terms(sc, rp, stored)
     rho_d = res.rho_d[p].astype(np.float64)
     for c in range(2):
         m = sc.labels[p] == c
@@ -114,13 +120,7 @@ def test_lsq_estimator_equals_the_stored_sample_least_squares(sphere_run):
         assert rp.add_samples(vis, L, C) == len(vis)
         stored.append((vis, L, np.broadcast_to(C, (len(vis), 3))))
     res = rp.result()
-    p = np.concatenate([s[0] for s in stored])
-    L = np.concatenate([s[1] for s in stored])
-    C = np.concatenate([s[2] for s in stored])
-    wo = C - sc.positions[p]
-    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    S = rp.tables.S(sc.normals[p], wo, sc.alphas[sc.labels[p]]).astype(np.float64)
-    D = rp.tables.D(sc.normals[p]).astype(np.float32).astype(np.float64)
+    p, L, S, D = _stored_terms(sc, rp, stored)
     P, k = len(sc.positions), len(p)
     for ch in range(3):
         A = coo_matrix((np.r_[D[:, ch], S[:, ch]], (np.r_[np.arange(k), np.arange(k)],

@@ -29,16 +29,6 @@ from replay.session import SessionReader
 SMALL = dict(n_points=3000, texture_size=64, envmap_n=32, hbsab_n=16)
 
 
-@pytest.fixture(scope="module")
-def kinect_sphere(tmp_path_factory):
-    """A short synthetic Kinect v1 scan of a glossy sphere (Ward alpha 0.12), 320 x 240, 12 frames a pass."""
-    from replay.synth import render_session
-
-    out = tmp_path_factory.mktemp("live") / "sphere"
-    return render_session("sphere", out, frames=12, size=(320, 240), seed=1, detail="test", references=False,
-                          show_progress=False)
-
-
 class SyntheticKinect(Source):
     """A synthetic session played as a live Kinect v1.
 
