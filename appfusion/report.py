@@ -159,8 +159,11 @@ def write_report(out_dir: str | os.PathLike, result: ScanResult, *, title: str =
     rep.mkdir(parents=True, exist_ok=True)
     figs: dict[str, Path] = {}
     if len(result.positions):
-        figs["Specular clusters (§5.2)"] = fig_points(result, cluster_colours(result.labels), rep / "clusters.png",
-                                                      f"{result.n_clusters} specular cluster(s)")
+        models = list(result.model or [])
+        kinds = ", ".join(f"{c}: {m}" + (f" alpha {result.alpha[c]:.3f}" if m == "ward" else "")
+                          for c, m in enumerate(models)) if models else ""
+        figs["Material clusters (§5.2)"] = fig_points(result, cluster_colours(result.labels), rep / "clusters.png",
+                                                      f"{result.n_clusters} cluster(s)" + (f" ({kinds})" if kinds else ""))
         figs["Diffuse albedo rho_d (§5.3)"] = fig_points(result, linear_to_srgb(result.rho_d), rep / "rho_d.png",
                                                          "rho_d (sRGB)")
     if result.envmap is not None:
