@@ -167,6 +167,36 @@ class _Problems:
         self.items.append((os.fspath(path), line, reason))
 
 
+def _text_records(data: bytes | str, path, skip_bad: bool):
+    """``(problems, records, dropped)`` of a line-based text file: ``records`` are the ``(line, text)``
+    of its non-blank, non-comment lines (stripped); ``dropped`` the half-written last line, if any."""
+    problems = _Problems(skip_bad)
+    lines, partial = _split_lines(data)
+    dropped = [(os.fspath(path), partial[0], partial[1])] if partial else []
+    records = [(no, t.strip()) for no, t in lines if t.strip() and not t.strip().startswith("#")]
+    return problems, records, dropped
+
+
+def _timestamped(records, problems, path, n_fields: int, expected: str, keep_rest: bool = False):
+    """``(line, fields, timestamp)`` of the records that split into ``n_fields`` fields (with
+    ``keep_rest`` the last one keeps its spaces) and start with a finite timestamp; the others are
+    reported to ``problems``."""
+    for no, s in records:
+        tok = s.split(None, n_fields - 1) if keep_rest else s.split()
+        if len(tok) != n_fields:
+            problems(path, no, f"expected {expected!r}, got {s[:60]!r}")
+            continue
+        try:
+            t = float(tok[0])
+        except ValueError:
+            problems(path, no, f"timestamp {tok[0][:40]!r} is not a number")
+            continue
+        if not math.isfinite(t):
+            problems(path, no, f"timestamp {tok[0][:40]!r} is not finite")
+            continue
+        yield no, tok, t
+
+
 # ----------------------------------------------------------------------------------------------
 # parsers of the text files (pure functions; fuzzed by the tests)
 # ----------------------------------------------------------------------------------------------
@@ -200,27 +230,10 @@ def parse_index(data: bytes | str, path: str | os.PathLike = "index.txt", stream
     SessionFormatError
         Naming the file and line of the first bad line (unless ``skip_bad``).
     """
-    problems = _Problems(skip_bad)
-    lines, partial = _split_lines(data)
-    dropped = [(os.fspath(path), partial[0], partial[1])] if partial else []
+    problems, records, dropped = _text_records(data, path, skip_bad)
     entries: list[tuple[int, str, float, str]] = []
     last_t, last_line = -math.inf, 0
-    for no, text in lines:
-        s = text.strip()
-        if not s or s.startswith("#"):
-            continue
-        tok = s.split()
-        if len(tok) != 2:
-            problems(path, no, f"expected 'timestamp path', got {s[:60]!r}")
-            continue
-        try:
-            t = float(tok[0])
-        except ValueError:
-            problems(path, no, f"timestamp {tok[0][:40]!r} is not a number")
-            continue
-        if not math.isfinite(t):
-            problems(path, no, f"timestamp {tok[0][:40]!r} is not finite")
-            continue
+    for no, tok, t in _timestamped(records, problems, path, 2, "timestamp path"):
         rel = tok[1]
         norm = posixpath.normpath(rel)
         if "\\" in rel or posixpath.isabs(rel) or norm == ".." or norm.startswith("../") or norm == ".":
@@ -244,27 +257,10 @@ def parse_events(data: bytes | str, path: str | os.PathLike = EVENTS_FILE, skip_
     Returns ``(events, bad, dropped)`` with ``events`` a list of ``(t, key, value)``; see
     :func:`parse_index` for ``bad`` and ``dropped``.
     """
-    problems = _Problems(skip_bad)
-    lines, partial = _split_lines(data)
-    dropped = [(os.fspath(path), partial[0], partial[1])] if partial else []
+    problems, records, dropped = _text_records(data, path, skip_bad)
     events: list[tuple[float, str, str]] = []
     last_t = -math.inf
-    for no, text in lines:
-        s = text.strip()
-        if not s or s.startswith("#"):
-            continue
-        tok = s.split(None, 2)
-        if len(tok) != 3:
-            problems(path, no, f"expected 'timestamp key value', got {s[:60]!r}")
-            continue
-        try:
-            t = float(tok[0])
-        except ValueError:
-            problems(path, no, f"timestamp {tok[0][:40]!r} is not a number")
-            continue
-        if not math.isfinite(t):
-            problems(path, no, f"timestamp {tok[0][:40]!r} is not finite")
-            continue
+    for no, tok, t in _timestamped(records, problems, path, 3, "timestamp key value", keep_rest=True):
         if t < last_t:
             problems(path, no, f"event time {tok[0]} is before the previous event ({last_t:.6f})")
             continue
@@ -291,15 +287,10 @@ def parse_groundtruth(data: bytes | str, path: str | os.PathLike = GROUNDTRUTH_F
     bad, dropped : list
         As in :func:`parse_index`.
     """
-    problems = _Problems(skip_bad)
-    lines, partial = _split_lines(data)
-    dropped = [(os.fspath(path), partial[0], partial[1])] if partial else []
+    problems, records, dropped = _text_records(data, path, skip_bad)
     times: list[float] = []
     vals: list[list[float]] = []
-    for no, text in lines:
-        s = text.strip()
-        if not s or s.startswith("#"):
-            continue
+    for no, s in records:
         tok = s.split()
         if len(tok) != 8:
             problems(path, no, f"expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {len(tok)} fields")
