@@ -77,6 +77,7 @@ from . import octahedral as oc
 from .brdf import ward_retro
 from .errors import AppFusionError, EstimationError
 from .hbsab import CH_W, CH_WV, CH_WV2, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, HBSAB, half_vector_samples
+from .points import check_oriented_points
 from .ward_fit import WardFit, WardFitter, one_blas_thread
 
 __all__ = ["BRDFTree", "build_tree", "BRDFCut", "CutResult", "ClusterInfo", "highlight_region",
@@ -136,22 +137,6 @@ class BRDFTree:
         return self.order[self.leaf_start[self.leaf_lo[node]]:self.leaf_start[self.leaf_hi[node]]]
 
 
-def _check_points(positions, normals):
-    P = np.asarray(positions, dtype=np.float64)
-    Nn = np.asarray(normals, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
-        raise AppFusionError(f"BRDF cut: positions must have shape (N, 3) with N >= 1, got {P.shape}")
-    if Nn.shape != P.shape:
-        raise AppFusionError(f"BRDF cut: normals of shape {Nn.shape} do not match positions {P.shape}")
-    bad = ~(np.isfinite(P).all(1) & np.isfinite(Nn).all(1))
-    if bad.any():
-        raise AppFusionError(f"BRDF cut: point {int(np.flatnonzero(bad)[0])} has a non-finite position or normal")
-    ln = np.linalg.norm(Nn, axis=1)
-    if np.any(ln < 1e-6):
-        raise AppFusionError(f"BRDF cut: point {int(np.flatnonzero(ln < 1e-6)[0])} has a zero normal")
-    return P, Nn / ln[:, None]
-
-
 def build_tree(positions: np.ndarray, normals: np.ndarray, min_leaf: int = 64,
                size: float | None = None, normal_weight: float = 1.0) -> BRDFTree:
     """Build the BRDF-cut tree over points (paper §5.2).
@@ -171,7 +156,7 @@ def build_tree(positions: np.ndarray, normals: np.ndarray, min_leaf: int = 64,
     -------
     BRDFTree
     """
-    P, Nn = _check_points(positions, normals)
+    P, Nn = check_oriented_points(positions, normals, "BRDF cut")
     min_leaf = int(min_leaf)
     if min_leaf < 1:
         raise AppFusionError(f"BRDF cut: min_leaf must be >= 1, got {min_leaf}")
@@ -505,7 +490,7 @@ class BRDFCut:
                  size: float | None = None, leaf_margin: float | None = 9.0, interior_k: int = 6,
                  interior_min_fraction: float = 0.3, emitter=None, merge_alpha_rel: float = 0.25,
                  merge_rho_rel: float = 0.35):
-        P, Nn = _check_points(positions, normals)
+        P, Nn = check_oriented_points(positions, normals, "BRDF cut")
         self.positions, self.normals = P, Nn
         self.tree = build_tree(P, Nn, min_leaf=min_leaf, size=size)
         self.leaves = HBSAB(self.tree.n_leaves, n=n, max_angle_deg=max_angle_deg, dtype=dtype)

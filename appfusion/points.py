@@ -60,6 +60,29 @@ def _check_points(positions: np.ndarray, normals: np.ndarray | None, where: str)
     return P, normals
 
 
+def check_oriented_points(positions, normals, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Validated surface points: (N, 3) float64 positions (N >= 1) and their normals made unit length.
+
+    Raises
+    ------
+    AppFusionError
+        Wrong shapes, a non-finite position or normal, or a zero normal, naming ``where`` and the point.
+    """
+    P = np.asarray(positions, dtype=np.float64)
+    Nn = np.asarray(normals, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
+        raise AppFusionError(f"{where}: positions must have shape (N, 3) with N >= 1, got {P.shape}")
+    if Nn.shape != P.shape:
+        raise AppFusionError(f"{where}: normals of shape {Nn.shape} do not match positions {P.shape}")
+    bad = ~(np.isfinite(P).all(1) & np.isfinite(Nn).all(1))
+    if bad.any():
+        raise AppFusionError(f"{where}: point {int(np.flatnonzero(bad)[0])} has a non-finite position or normal")
+    ln = np.linalg.norm(Nn, axis=1)
+    if np.any(ln < 1e-6):
+        raise AppFusionError(f"{where}: point {int(np.flatnonzero(ln < 1e-6)[0])} has a zero normal")
+    return P, Nn / ln[:, None]
+
+
 def mean_spacing(positions: np.ndarray, k: int = 8) -> float:
     """Mean point spacing of a point set sampled on a surface, metres.
 

@@ -68,6 +68,7 @@ from .diffuse_term import envmap_check
 from .double_product import DoubleProductTables
 from .errors import AppFusionError
 from .frame import Intrinsics, invert_pose
+from .points import check_oriented_points
 
 __all__ = ["RGBPass", "RGBResult", "histogram_percentile"]
 
@@ -234,19 +235,7 @@ class RGBPass:
                  dark: float = 0.01, saturated: float = 0.98, min_cos: float = math.cos(math.radians(75)),
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
                  depth_tol: float = 0.01, table_kwargs: dict | None = None):
-        P = np.asarray(positions, dtype=np.float64)
-        N = np.asarray(normals, dtype=np.float64)
-        if P.ndim != 2 or P.shape[1] != 3 or len(P) == 0:
-            raise AppFusionError(f"RGBPass: positions must be a non-empty (P, 3) array, got shape {P.shape}")
-        if N.shape != P.shape:
-            raise AppFusionError(f"RGBPass: normals {N.shape} must have the shape of positions {P.shape}")
-        if not (np.isfinite(P).all() and np.isfinite(N).all()):
-            raise AppFusionError("RGBPass: positions and normals must be finite (no NaN/inf)")
-        nn = np.linalg.norm(N, axis=1)
-        if (nn < 1e-6).any():
-            raise AppFusionError(f"RGBPass: {int((nn < 1e-6).sum())} normals have zero length (first at point "
-                                 f"{int(np.flatnonzero(nn < 1e-6)[0])})")
-        N = N / nn[:, None]
+        P, N = check_oriented_points(positions, normals, "RGBPass")
         lab = np.asarray(labels)
         if lab.shape != (len(P),) or not np.issubdtype(lab.dtype, np.integer):
             raise AppFusionError(f"RGBPass: labels must be ({len(P)},) integers, got {lab.shape} {lab.dtype}")
