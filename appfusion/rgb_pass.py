@@ -560,7 +560,19 @@ class RGBPass:
         val, _ = histogram_percentile(self.hist, self.log_lo, self.log_width, self.percentile, self.bin_mean)
         return val, self.counts.copy()
 
-    def _lsq(self, counts: np.ndarray, rd_pct: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _within_point_moments(self, min_samples: int):
+        """Per point and channel, over its samples: ``use`` (at least ``min_samples``), the sample count
+        ``n`` (1 where unused), and the centred moments ``C_SL = sum SL - sum S sum L / n``,
+        ``V_SS`` and ``V_LL`` (likewise; variances clamped at 0 against rounding), 0 where unused."""
+        use = self.counts >= min_samples
+        u = use[:, None]
+        n = np.where(u, self.counts.astype(np.float64)[:, None], 1.0)
+        c_sl = np.where(u, self.sum_sl - self.sum_s * self.sum_l / n, 0.0)
+        v_ss = np.where(u, np.maximum(self.sum_s2 - self.sum_s * self.sum_s / n, 0.0), 0.0)
+        v_ll = np.where(u, np.maximum(self.sum_l2 - self.sum_l * self.sum_l / n, 0.0), 0.0)
+        return use, n, c_sl, v_ss, v_ll
+
+    def _lsq(self, rd_pct: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Joint least squares of Eq. 5: rho_d per point, rho_s per cluster, from the running sums.
 
         Minimising ``sum_p sum_j (L_pj - D_p rho_d,p - S_pj rho_s,c)^2`` (``D`` is fixed per point)
@@ -575,13 +587,9 @@ class RGBPass:
         """
         C = self.n_clusters
         lab = self.labels
-        n = counts.astype(np.float64)[:, None]
-        use = counts >= self.min_lsq_samples
-        nn = np.where(use[:, None], n, 1.0)
-        cov = np.where(use[:, None], self.sum_sl - self.sum_s * self.sum_l / nn, 0.0)
-        var = np.where(use[:, None], self.sum_s2 - self.sum_s * self.sum_s / nn, 0.0)
+        use, nn, cov, var, vll = self._within_point_moments(self.min_lsq_samples)
         num = np.stack([np.bincount(lab, weights=cov[:, c], minlength=C) for c in range(3)], axis=1)
-        den = np.stack([np.bincount(lab, weights=np.maximum(var[:, c], 0.0), minlength=C) for c in range(3)], axis=1)
+        den = np.stack([np.bincount(lab, weights=var[:, c], minlength=C) for c in range(3)], axis=1)
         scale = np.maximum(den.max(), 1e-300)
         ok = den > 1e-12 * scale
         rho_s = np.maximum(np.where(ok, num / np.where(ok, den, 1.0), 0.0), 0.0)
@@ -589,14 +597,12 @@ class RGBPass:
         # by held-out error. The points are split in two halves; rho_s fitted on one half is scored on
         # the other with each point's rho_d refitted to its own samples, whose residual is then the
         # within-point variance  RSS_p(rho_s) = V_LL - 2 rho_s C_SL + rho_s^2 V_SS  (rho_s = 0: diffuse).
-        vll = np.where(use[:, None], self.sum_l2 - self.sum_l * self.sum_l / nn, 0.0)
         half = (np.arange(len(lab)) % 2).astype(bool)
         rss = np.zeros((C, 2))
         for h in (False, True):
             fit_m, test_m = (half == h), (half != h)
             nu = np.stack([np.bincount(lab[fit_m], weights=cov[fit_m, c], minlength=C) for c in range(3)], 1)
-            de = np.stack([np.bincount(lab[fit_m], weights=np.maximum(var[fit_m, c], 0.0), minlength=C)
-                           for c in range(3)], 1)
+            de = np.stack([np.bincount(lab[fit_m], weights=var[fit_m, c], minlength=C) for c in range(3)], 1)
             rs_h = np.maximum(np.where(de > 0, nu / np.where(de > 0, de, 1.0), 0.0), 0.0)
             r_w = vll - 2 * rs_h[lab] * cov + rs_h[lab] ** 2 * var
             rss[:, 0] += np.bincount(lab[test_m], weights=vll[test_m].sum(1), minlength=C)
@@ -637,16 +643,12 @@ class RGBPass:
 
         if self.estimator != "lsq" or not self.counts.any():
             return []
-        cnt = self.counts.astype(np.float64)[:, None]
-        use = self.counts >= min_samples
-        nn = np.where(use[:, None], cnt, 1.0)
-        cov = np.where(use[:, None], self.sum_sl - self.sum_s * self.sum_l / nn, 0.0).sum(1)
-        var = np.where(use[:, None], np.maximum(self.sum_s2 - self.sum_s * self.sum_s / nn, 0.0), 0.0).sum(1)
+        use, _, c_sl, v_ss, v_ll = self._within_point_moments(min_samples)
+        cov, var, vll = c_sl.sum(1), v_ss.sum(1), v_ll.sum(1)
         k = int(min(k_nn, len(self.positions)))
         _, nb = cKDTree(self.positions).query(self.positions, k=k)
         nb = np.asarray(nb).reshape(len(self.positions), -1)
         same = self.labels[nb] == self.labels[:, None]                 # neighbours of the same cluster
-        vll = np.where(use[:, None], np.maximum(self.sum_l2 - self.sum_l * self.sum_l / nn, 0.0), 0.0).sum(1)
         dof_p = np.where(use, 3.0 * (self.counts - 1), 0.0)
         num = np.sum(np.where(same, cov[nb], 0.0), axis=1)
         den = np.sum(np.where(same, var[nb], 0.0), axis=1)
@@ -726,7 +728,7 @@ class RGBPass:
         lab = self.labels
         csamp = np.bincount(lab, weights=counts, minlength=C).astype(np.int64)
         if self.estimator == "lsq":
-            rd, rho_s, den = self._lsq(counts, rd)
+            rd, rho_s, den = self._lsq(rd)
             ok = den > 1e-12 * np.maximum(den.max(), 1e-300)
         else:
             # Eq. 8 with the final rho_d: sum S (L - D rho_d) = sum SL - rho_d sum SD

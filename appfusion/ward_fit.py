@@ -429,8 +429,7 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
 
         # texels with clipped samples: clipping averaged over the texel's quadrature nodes (the lobe
         # varies a lot across a texel near its peak); the others: clipping of the texel mean
-        d_ = hb.data[:, buffer].astype(np.float64)
-        part = d_[CH_SAT, csel] > 0
+        part = hb.data[CH_SAT, buffer, csel] > 0
         ip = np.flatnonzero(part)
 
         def cresid(x):
