@@ -67,6 +67,13 @@ class ScanConfig:
     rgb_split : bool
         Let the RGB pass split off the part of an IR cluster that shows far less specular reflection
         in colour (:meth:`appfusion.rgb_pass.RGBPass.split_by_specular`).
+    near_field : bool
+        Light the object with the support plane as seen from each point (black paper, the white
+        circles, the object's shadow on them: :mod:`appfusion.near_field`) instead of as the mirror
+        ball saw it, in D and S of Eq. 5 (beyond the paper's distant-light model, §3).
+    diffuse_tau : float or None
+        rho_d by the least squares of Eq. 5 with each sample weighted by ``1 / (1 + (S / (tau D))^2)``
+        (diffuse-dominated views count most, as Eq. 6's minimum intends); None: unweighted.
     frame_stride : int
         Use every n-th frame of each pass.
     ball_radius_m : float or None
@@ -98,6 +105,8 @@ class ScanConfig:
     rho_d_bins: int = 64
     rho_d_estimator: str = "lsq"
     rgb_split: bool = True
+    near_field: bool = True
+    diffuse_tau: float | None = 0.25
     frame_stride: int = 1
     ball_radius_m: float | None = None
     mirror_reflectance: float | None = None
@@ -755,7 +764,8 @@ class ScanRunner:
             if not specular.all():
                 self._note(f"rgb: cluster(s) {', '.join(str(c) for c in np.flatnonzero(~specular))} show no "
                            "specular lobe in the IR: diffuse only, no double-product tables for them")
-        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, **self._rgb_kwargs())
+        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular,
+                           near_field=self._near_field(), **self._rgb_kwargs())
         wb = self._white_balancer(self.geometry)
         # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
         marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None
@@ -865,7 +875,37 @@ class ScanRunner:
 
     def _rgb_kwargs(self) -> dict[str, Any]:
         return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf,
-                "estimator": self.config.rho_d_estimator}
+                "estimator": self.config.rho_d_estimator, "diffuse_tau": self.config.diffuse_tau}
+
+    def _near_field(self):
+        """The support plane as near-field light for the RGB pass (:mod:`appfusion.near_field`), or None
+        (switched off, or the printed layout or the ball's centre unknown: noted)."""
+        if not self.config.near_field or self.env is None:
+            return None
+        from .markers import marker_config_from_meta
+        from .near_field import SupportPlaneLight
+
+        mc = marker_config_from_meta(self.source.meta if isinstance(self.source.meta, dict) else {})
+        sphere = (self.env.meta or {}).get("sphere") or {}
+        if not mc.side_m or "center" not in sphere:
+            self._note("rgb: near-field plane off (needs the printed marker layout and the mirror ball's centre); "
+                       "the plane is lit as the ball saw it")
+            return None
+        h = mc.side_m / 2
+        centres = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+        radii = np.array([mc.key_radius_m or mc.radius_m, mc.radius_m, mc.radius_m, mc.radius_m], float)
+        try:
+            nf = SupportPlaneLight.from_scan(self.env.radiance, centres, radii, sphere["center"],
+                                             sphere.get("radius"))
+        except AppFusionError as e:
+            self._note(f"rgb: near-field plane off ({e})")
+            return None
+        if self.mesh is not None and len(self.mesh[1]):
+            nf.with_object_shadow(*self.mesh)
+        self._note("rgb: support plane as near-field light (paper radiance "
+                   + ", ".join(f"{v:.3f}" for v in nf.paper) + ", circles 1, object shadow "
+                   + ("on" if nf.shadow is not None else "off") + ")")
+        return nf
 
     # -- results -------------------------------------------------------------------------------------
     def result(self):

@@ -234,7 +234,8 @@ class RGBPass:
                  specular=None,
                  dark: float = 0.01, saturated: float = 0.98, min_cos: float = math.cos(math.radians(75)),
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
-                 depth_tol: float = 0.01, table_kwargs: dict | None = None):
+                 depth_tol: float = 0.01, table_kwargs: dict | None = None, near_field=None,
+                 diffuse_tau: float | None = 0.25, near_field_samples: int = 4):
         P, N = check_oriented_points(positions, normals, "RGBPass")
         lab = np.asarray(labels)
         if lab.shape != (len(P),) or not np.issubdtype(lab.dtype, np.integer):
@@ -282,6 +283,14 @@ class RGBPass:
         self.tables = tables
         self.table_seconds = time.perf_counter() - t0
         self.D = tables.D(N).astype(np.float32)                      # (P, 3), fixed per point
+        # the support plane as near-field light (appfusion.near_field): D and S see the paper and the
+        # circles from each point instead of from the mirror ball
+        self.near_field = near_field
+        self.near_field_samples = int(near_field_samples)
+        if near_field is not None:
+            t1 = time.perf_counter()
+            self.D = np.maximum(self.D + near_field.delta_D(P, N), 0.0).astype(np.float32)
+            self.near_field_seconds = time.perf_counter() - t1
         dmax = float(self.D.max()) if self.D.size else 0.0
         self.lit = (self.D.min(axis=1) > d_min * dmax) if dmax > 0 else np.zeros(len(P), bool)
         self.point_alpha = al[self.labels]
@@ -309,6 +318,13 @@ class RGBPass:
         self.sum_s = np.zeros((n, 3))     # sum S and sum L: with D fixed per point, these and the sums
         self.sum_l = np.zeros((n, 3))     # above are every moment the least squares of Eq. 5 needs
         self.sum_l2 = np.zeros((n, 3))    # sum L^2: residuals of the model ladder's held-out test
+        # diffuse weighting of rho_d (lsq): sum w, sum w L, sum w S with w = 1 / (1 + (S / (tau D))^2)
+        if diffuse_tau is not None and not diffuse_tau > 0:
+            raise AppFusionError(f"RGBPass: diffuse_tau must be > 0 or None, got {diffuse_tau}")
+        self.diffuse_tau = None if diffuse_tau is None else float(diffuse_tau)
+        self.sum_w = np.zeros(n)
+        self.sum_wl = np.zeros((n, 3))
+        self.sum_ws = np.zeros((n, 3))
         self.frames = 0
         self.stats = {"samples": 0, "skipped_dark": 0, "skipped_saturated": 0, "skipped_grazing": 0,
                       "skipped_unlit": 0, "register_s": 0.0, "update_s": 0.0}
@@ -316,8 +332,8 @@ class RGBPass:
     @property
     def nbytes(self) -> int:
         """Bytes of the per-point state (histograms and sums), excluding the tables."""
-        return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + 6 * self.sum_s2.nbytes
-                   + self.D.nbytes)
+        return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + 8 * self.sum_s2.nbytes
+                   + self.sum_w.nbytes + self.D.nbytes)
 
     # -- per-frame --------------------------------------------------------------------------
     def add_frame(self, rgb_linear: np.ndarray, depth: np.ndarray, rgb_intrinsics: Intrinsics,
@@ -512,6 +528,11 @@ class RGBPass:
             S = np.zeros((len(p), 3), np.float32)
             if sp.any():
                 S[sp] = self.tables.S(nrm[sp], wo[sp], self.point_alpha[p[sp]])
+        if self.near_field is not None and sp.any():
+            i = np.flatnonzero(sp)
+            dS = self.near_field.delta_S(self.positions[p[i]], nrm[i], wo[i], self.point_alpha[p[i]],
+                                         n_samples=self.near_field_samples, seed=self.frames * 7919 + st["samples"])
+            S[i] = np.maximum(S[i] + dS, 0.0).astype(np.float32)
         if unique:
             self._accumulate(p, L, S)
         else:                                                 # repeated points: rounds of distinct ones
@@ -553,6 +574,12 @@ class RGBPass:
         self.sum_s[p] += S
         self.sum_l[p] += L
         self.sum_l2[p] += L * L
+        if self.diffuse_tau is not None:
+            x = S.mean(axis=1) / np.maximum(Dp.mean(axis=1), np.float32(1e-12)) / np.float32(self.diffuse_tau)
+            w = 1.0 / (1.0 + x.astype(np.float64) ** 2)
+            self.sum_w[p] += w
+            self.sum_wl[p] += w[:, None] * L
+            self.sum_ws[p] += w[:, None] * S
 
     # -- results ------------------------------------------------------------------------------
     def rho_d(self) -> tuple[np.ndarray, np.ndarray]:
@@ -614,6 +641,12 @@ class RGBPass:
         rho_s = np.where(np.array([m == "ward" for m in self.model])[:, None], rho_s, 0.0)
         D = np.maximum(self.D.astype(np.float64), 1e-12)
         rd = (self.sum_l - rho_s[lab] * self.sum_s) / nn / D
+        if self.diffuse_tau is not None:
+            # the same least squares with each sample weighted by how diffuse it is (w = 1 for S << D):
+            # errors of S (normals, alpha, lighting) enter rho_d through rho_s S, most where S is large
+            sw = self.sum_w[:, None]
+            rd_w = (self.sum_wl - rho_s[lab] * self.sum_ws) / np.maximum(sw, 1e-300) / D
+            rd = np.where(sw > 1e-6, rd_w, rd)
         rd = np.where(use[:, None], np.maximum(rd, 0.0), rd_pct)
         return rd, rho_s, den
 

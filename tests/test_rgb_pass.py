@@ -113,7 +113,7 @@ def test_lsq_estimator_equals_the_stored_sample_least_squares(sphere_run):
 
     sc, poses, _, rp0, _ = sphere_run
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
-                 estimator="lsq", min_lsq_samples=1)
+                 estimator="lsq", min_lsq_samples=1, diffuse_tau=None)
     stored = []
     for vis, L, C in _model_samples(sc, poses[:12], rp0.tables, sc.alphas[sc.labels], sc.rho_s[sc.labels],
                                     np.random.default_rng(5), 0.1):
@@ -130,6 +130,35 @@ def test_lsq_estimator_equals_the_stored_sample_least_squares(sphere_run):
         np.testing.assert_allclose(res.rho_s[:, ch], x[P:], rtol=2e-3)
         seen = np.unique(p)
         np.testing.assert_allclose(res.rho_d[seen, ch], x[seen], rtol=2e-3, atol=1e-4)
+
+
+def test_diffuse_weighted_rho_d_equals_the_weighted_stored_sample_solution(sphere_run):
+    """``diffuse_tau``: rho_s as in the unweighted least squares, rho_d per point the weighted mean of
+    ``(L - rho_s S) / D`` with ``w = 1 / (1 + (mean S / (tau mean D))^2)`` over stored samples; with
+    noise-free model samples both estimators recover the truth, the weighted one no worse."""
+    sc, poses, _, rp0, _ = sphere_run
+    tau = 0.25
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
+                 estimator="lsq", min_lsq_samples=1, diffuse_tau=tau)
+    rp_plain = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
+                       estimator="lsq", min_lsq_samples=1, diffuse_tau=None)
+    stored = []
+    for vis, L, C in _model_samples(sc, poses[:12], rp0.tables, sc.alphas[sc.labels], sc.rho_s[sc.labels],
+                                    np.random.default_rng(5), 0.1):
+        rp.add_samples(vis, L, C)
+        rp_plain.add_samples(vis, L, C)
+        stored.append((vis, L, np.broadcast_to(C, (len(vis), 3))))
+    res, plain = rp.result(), rp_plain.result()
+    np.testing.assert_allclose(res.rho_s, plain.rho_s, rtol=1e-6)
+    p, L, S, D = _stored_terms(sc, rp, stored)
+    w = 1.0 / (1.0 + (S.mean(1) / D.mean(1) / tau) ** 2)
+    P = len(sc.positions)
+    r = L - res.rho_s[sc.labels[p]].astype(np.float64) * S
+    num = np.stack([np.bincount(p, w * r[:, c] / D[:, c], P) for c in range(3)], 1)
+    den = np.bincount(p, w, P)[:, None]
+    seen = np.unique(p)
+    np.testing.assert_allclose(res.rho_d[seen], (num / np.maximum(den, 1e-300))[seen], rtol=2e-3, atol=1e-4)
+    assert np.isfinite(res.rho_d).all()
 
 
 def test_model_ladder_picks_diffuse_for_a_matte_cluster_and_ward_for_a_glossy_one(sphere_run):

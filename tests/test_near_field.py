@@ -1,0 +1,121 @@
+"""The support plane as near-field light (appfusion.near_field): closed forms and brute-force references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from appfusion import octahedral as oc
+from appfusion.errors import AppFusionError
+from appfusion.near_field import SupportPlaneLight, paper_radiance_from_env
+from appfusion.rgb_synth import brute_force_S
+
+N = 64
+FAR = np.array([[50.0, 50.0, 0.0]])          # a circle far outside every extent: no effect
+R_FAR = np.array([0.01])
+
+
+def _env(upper=(0.3, 0.3, 0.3), lower=(0.02, 0.03, 0.04)) -> np.ndarray:
+    d = oc.sphere_directions(N)
+    env = np.where(d[..., 2:3] >= 0, np.asarray(upper, float), np.asarray(lower, float))
+    return env.astype(np.float32)
+
+
+def test_delta_D_of_a_downward_normal_is_the_disc_form_factor():
+    """A point at height h facing straight down sees the plane within ``extent`` as a disc:
+    dD = (L_paper - L_env) sin^2(theta_max), tan(theta_max) = extent / h; a circle right below adds
+    (L_circle - L_paper) a^2 / (a^2 + h^2)."""
+    env = _env()
+    paper = np.array([0.05, 0.05, 0.05])
+    h, ext = 0.1, 0.4
+    nf = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=ext, n_quad=64)
+    p = np.array([[0.0, 0.0, h]])
+    n = np.array([[0.0, 0.0, -1.0]])
+    s2 = ext ** 2 / (ext ** 2 + h ** 2)
+    want = (paper - np.array([0.02, 0.03, 0.04])) * s2
+    np.testing.assert_allclose(nf.delta_D(p, n)[0], want, rtol=0.02, atol=2e-4)
+    # an upward normal sees nothing of the plane
+    np.testing.assert_allclose(nf.delta_D(p, -n)[0], 0.0, atol=1e-12)
+    a = 0.03
+    nfc = SupportPlaneLight(env, np.array([[0.0, 0.0, 0.0]]), np.array([a]), paper, circle_radiance=1.0,
+                            extent_m=ext, n_quad=64)
+    extra = nfc.delta_D(p, n)[0] - nf.delta_D(p, n)[0]
+    np.testing.assert_allclose(extra, (1.0 - paper) * a * a / (a * a + h * h), rtol=0.03)
+
+
+def test_delta_S_matches_brute_force_with_the_plane_as_lower_hemisphere():
+    """With an extent far beyond every hit, the plane model is a lower hemisphere of uniform paper:
+    dS = S(env with paper below) - S(env), by brute-force quadrature over all texels."""
+    env = _env()
+    paper = np.array([0.08, 0.06, 0.04])
+    env_p = _env(lower=paper)
+    nf = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
+    rng = np.random.default_rng(0)
+    m = 40
+    n = rng.normal(size=(m, 3))
+    n[:, 2] = np.abs(n[:, 2]) * 0.3                   # side-facing normals: lobes reach the plane
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    wo = n + rng.normal(size=(m, 3)) * 0.3
+    wo[:, 2] = np.abs(wo[:, 2]) + 0.3                  # cameras above
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    keep = np.sum(n * wo, 1) > 0.3
+    n, wo = n[keep], wo[keep]
+    p = np.tile([0.0, 0.0, 0.08], (len(n), 1))
+    for alpha in (0.08, 0.3):
+        want = brute_force_S(env_p, n, alpha, wo) - brute_force_S(env, n, alpha, wo)
+        got = np.mean([nf.delta_S(p, n, wo, alpha, n_samples=64, seed=s) for s in range(8)], axis=0)
+        scale = np.abs(want).max()
+        assert scale > 1e-3
+        np.testing.assert_allclose(got, want, atol=0.03 * scale + 1e-5)
+    # lobes that point up get no correction at all
+    up = np.tile([0.0, 0.0, 1.0], (3, 1))
+    assert np.all(nf.delta_S(p[:3], up, up, 0.05) == 0)
+
+
+def test_paper_radiance_read_from_the_ball_map_ignores_circles_and_the_ball_shadow():
+    paper = np.array([0.05, 0.051, 0.052])
+    env = _env(lower=paper)
+    c = np.array([0.0, 0.0, 0.035])
+    d = oc.sphere_directions(N)
+    t = c[2] / np.maximum(-d[..., 2], 1e-9)
+    xy = c[:2] + t[..., None] * d[..., :2]
+    h = 0.15
+    centres = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+    radii = np.array([0.035, 0.025, 0.025, 0.025])
+    circ = np.any(np.sum((xy[..., None, :] - centres[:, :2]) ** 2, -1) <= radii ** 2, -1) & (d[..., 2] < 0)
+    env[circ] = 1.0
+    env[(d[..., 2] < -0.8)] *= 0.5                    # the ball's own shadow right below it
+    np.testing.assert_allclose(paper_radiance_from_env(env, c, centres, radii), paper, rtol=1e-5)
+    with pytest.raises(AppFusionError, match="above the plane"):
+        paper_radiance_from_env(env, [0, 0, -0.1], centres, radii)
+
+
+def test_object_shadow_darkens_the_plane_under_an_object_only():
+    """A 10 cm box standing on the plane under a map lit from above: the plane under it is dark,
+    far from it lit; the plane's radiance follows."""
+    import open3d as o3d
+
+    env = _env(upper=(1.0, 1.0, 1.0))
+    nf = SupportPlaneLight(env, FAR, R_FAR, [0.05, 0.05, 0.05], extent_m=0.3)
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.1, 0.1).translate((-0.05, -0.05, 0.0))
+    nf.with_object_shadow(np.asarray(box.vertices), np.asarray(box.triangles), step_m=0.01)
+    f = nf._shadow_at(np.array([[0.0, 0.0], [0.28, 0.28], [5.0, 5.0]]))
+    assert f[0] < 0.05 and f[1] > 0.5 and f[2] == 1.0
+    L = nf.plane_radiance(np.array([[0.0, 0.0], [5.0, 5.0]]))
+    assert L[0, 0] < 0.05 * 0.05 + 1e-6 and L[1, 0] == pytest.approx(0.05)
+
+
+def test_bad_inputs_name_the_problem():
+    with pytest.raises(AppFusionError, match=r"\(2, N, N, 3\)"):
+        SupportPlaneLight(np.zeros((3, 4)), FAR, R_FAR, [0.05] * 3)
+    with pytest.raises(AppFusionError, match="radius"):
+        SupportPlaneLight(_env(), FAR, np.array([-1.0]), [0.05] * 3)
+    with pytest.raises(AppFusionError, match="finite"):
+        SupportPlaneLight(_env(), FAR, R_FAR, [np.nan, 0, 0])
+    nf = SupportPlaneLight(_env(), FAR, R_FAR, [0.05] * 3)
+    # points on or below the plane, grazing views, empty input: zeros, no NaN
+    p = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -0.01], [0.0, 0.0, 0.05]])
+    n = np.array([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0, 0]])
+    wo = np.array([[0, 1.0, 0], [0, 1.0, 0], [0, 1.0, 0]])
+    assert np.isfinite(nf.delta_S(p, n, wo, 0.1)).all() and np.isfinite(nf.delta_D(p, n)).all()
+    assert nf.delta_S(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 0.1).shape == (0, 3)
