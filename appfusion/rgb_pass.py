@@ -226,6 +226,15 @@ class RGBPass:
         Visibility tolerance of ``"points"`` registration, metres.
     table_kwargs : dict, optional
         Passed to :class:`~appfusion.double_product.DoubleProductTables`.
+    near_field : appfusion.near_field.SupportPlaneLight, optional
+        The support plane as near-field light: its corrections are added to D (once per point) and
+        to S (per sample whose lobe reaches below the horizon); None keeps the paper's distant light.
+    diffuse_tau : float or None
+        rho_d of ``estimator="lsq"`` weights each sample by ``1 / (1 + (S / (tau D))^2)`` (means over
+        RGB; views without a highlight count most, as Eq. 6 intends); None: the unweighted least
+        squares. rho_s is the unweighted pooled slope either way.
+    near_field_samples : int
+        Ward lobe samples per RGB sample for the near-field ``dS``.
     """
 
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
