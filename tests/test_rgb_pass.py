@@ -214,7 +214,7 @@ def test_split_by_specular_finds_the_material_the_ir_merged(sphere_run):
     for vis, L, C in _model_samples(sc, poses, rp0.tables, np.full(len(sc.labels), alpha[0]), rs_true,
                                     np.random.default_rng(12), 0.02):
         rp.add_samples(vis, L, C)
-    splits = rp.split_by_specular(k_nn=24)
+    splits = rp.split_by_specular()
     assert len(splits) == 1 and splits[0][:2] == (0, 1)
     lab = rp.labels_caller_order()
     seen = rp.result().observed
