@@ -10,7 +10,7 @@ the synthetic scanner (``replay.synth``), and reports:
 ``demo_scan_s``
     Wall time of that ``run_scan``, seconds: opening the recording, every pass, evaluation, export and
     report. The full bench scans the demo session (``replay.synth.demo_session``: two-material,
-    640 x 480, 100 frames per pass, default :class:`~appfusion.pipeline.ScanConfig`), i.e. exactly
+    640 x 480, 200 frames per pass, default :class:`~appfusion.pipeline.ScanConfig`), i.e. exactly
     ``appfusion scan --demo``. **With --quick it is the time of a small session's scan**
     (:data:`QUICK_SESSION`, :data:`QUICK_POINTS` points), not the demo's; the report says so in
     ``notes["demo_scan_s"]``.
