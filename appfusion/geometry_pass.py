@@ -214,7 +214,7 @@ class GeometryPass:
         self.states.append(st)
         return st
 
-    def _voxel(self, det: MarkerDetection | None) -> float:
+    def _voxel(self, det: MarkerDetection | None, K: Intrinsics | None = None) -> float:
         fc = self.config.fusion or FusionConfig()
         if self.config.fixed_voxel:
             return fc.voxel_size
@@ -222,7 +222,14 @@ class GeometryPass:
         if side is None and det is not None and det.complete:
             C = det.centers
             side = float(np.mean([np.linalg.norm(C[i] - C[(i + 1) % 4]) for i in range(4)]))
-        return voxel_size_for_box(side if side else 0.30, self.config.box_height)
+        pixel = None
+        if K is not None and K.fx > 0:
+            # the depth pixel's footprint at the working distance: the circles' depth, else 0.75 m
+            z = 0.75
+            if det is not None and det.n and np.isfinite(np.asarray(det.centers, float)).all():
+                z = float(np.median(np.asarray(det.centers, float)[:, 2]))
+            pixel = max(z, 0.1) / float(K.fx)
+        return voxel_size_for_box(side if side else 0.30, self.config.box_height, pixel)
 
     def _set_roi(self) -> None:
         cfg, mc = self.config, self.marker_config
@@ -314,7 +321,7 @@ class GeometryPass:
             marker_reason = ""
         t_markers = (time.perf_counter() - t0) * 1e3
         if self.fusion is None:
-            fc = replace(self.config.fusion or FusionConfig(), voxel_size=self._voxel(det))
+            fc = replace(self.config.fusion or FusionConfig(), voxel_size=self._voxel(det, K))
             self.fusion = TSDFFusion(K, fc)
             if det is not None:
                 self.tracker.update(det, self.fusion.pose)

@@ -179,9 +179,13 @@ def test_pose_helpers():
     Tn = orthonormalize(noisy)
     assert np.allclose(Tn[:3, :3].T @ Tn[:3, :3], np.eye(3), atol=1e-12)
     assert rotation_angle_deg(invert_pose(T) @ Tn) < 1e-4
-    assert voxel_size_for_box(0.30) == pytest.approx(0.004)
-    assert voxel_size_for_box(0.60, 0.30) == pytest.approx(0.008)
+    assert voxel_size_for_box(0.30) == pytest.approx(0.003)
+    assert voxel_size_for_box(0.60, 0.30) == pytest.approx(0.006)
     assert voxel_size_for_box(0.05, 0.05) == pytest.approx(0.002)
+    assert voxel_size_for_box(0.30, pixel_m=0.001) == pytest.approx(0.003)     # VGA at 0.6 m: the box rules
+    assert voxel_size_for_box(0.30, pixel_m=0.0026) == pytest.approx(0.0039)   # QVGA at 0.75 m: 1.5 pixels
+    with pytest.raises(AppFusionError, match="pixel"):
+        voxel_size_for_box(0.30, pixel_m=0.0)
     with pytest.raises(AppFusionError):
         voxel_size_for_box(-1.0)
 
@@ -302,7 +306,8 @@ def test_geometry_pass_poses_and_markers(seq, geometry):
 
 def test_geometry_pass_mesh_points_normals(seq, geometry):
     _, _, res = geometry
-    assert res.voxel_size == pytest.approx(0.004)
+    # 320 x 240, circles ~0.75 m away: 1.5 depth pixels' footprint (~4 mm) sets the voxel, not the box's 3 mm
+    assert 0.0035 < res.voxel_size < 0.0045
     V = np.asarray(res.mesh.vertices)
     assert res.box.contains(V).all()
     scene = o3d.t.geometry.RaycastingScene()
