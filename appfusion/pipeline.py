@@ -35,8 +35,9 @@ from .frame import Frame
 #: the passes in the order they are scanned
 PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: version of what the stages compute: bump it when a stage's output changes, so that checkpoints
-#: written by an older engine (``out_dir/state``) are recomputed instead of reused
-CHECKPOINT_VERSION = 2
+#: written by an older engine (``out_dir/state``) are recomputed instead of reused (3: 3 mm voxels, the
+#: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods)
+CHECKPOINT_VERSION = 3
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
