@@ -78,7 +78,7 @@ from .brdf import ward_retro
 from .errors import AppFusionError, EstimationError
 from .hbsab import CH_W, CH_WV, CH_WV2, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, HBSAB, half_vector_samples
 from .points import check_oriented_points
-from .ward_fit import WardFit, WardFitter, one_blas_thread
+from .ward_fit import RHO_S_MAX, WardFit, WardFitter, one_blas_thread
 
 __all__ = ["BRDFTree", "build_tree", "BRDFCut", "CutResult", "ClusterInfo", "highlight_region",
            "kmeans_hbsab"]
@@ -711,12 +711,20 @@ class BRDFCut:
         what the chi-square expects, so clusters whose fitted Ward lobes agree -- alpha within
         ``merge_alpha_rel`` relative (or 3 combined sigma) and rho_s within ``merge_rho_rel`` (or 3
         combined sigma) -- are one
-        material and are merged (largest first), then refitted. Returns labels, clusters, merges."""
+        material and are merged (largest first), then refitted. A cluster whose fit ran to the needle
+        bound (``rho_s`` at ``ward_fit.RHO_S_MAX``: clipped peaks that any sharp enough lobe explains)
+        measured no lobe of its own either and joins the largest cluster with a proper fit.
+        Returns labels, clusters, merges."""
         merged = 0
         while len(clusters) > 1:
             fits = [(c.label, c.fit) for c in clusters if c.fit is not None]
+            needle = [a for a, f in fits if f.rho_s >= RHO_S_MAX * (1 - 1e-6)]
+            sound = [c for c in clusters if c.fit is not None and c.label not in needle]
             pair = None
-            for i in range(len(fits)):
+            if needle and sound:
+                keep = max(sound, key=lambda c: c.area).label
+                pair = (min(keep, needle[0]), max(keep, needle[0]))
+            for i in range(len(fits) if pair is None else 0):
                 for j in range(i + 1, len(fits)):
                     (a, fa), (b, fb) = fits[i], fits[j]
                     if fa.at_bound or fb.at_bound:              # no lobe measured: nothing to compare

@@ -87,6 +87,11 @@ except ImportError:                                     # two busy cores
     threadpool_limits = None
 
 ALPHA_MIN, ALPHA_MAX = 0.01, 1.0
+#: largest specular albedo a fit may take (reflectances are relative to the calibration sheet, whose
+#: albedo is ~1: energy conservation bounds rho_s by ~1; twice that for slack). Without it a clipped
+#: peak let the fit run to a needle lobe (alpha 0.016, rho_s 3.6e7 on a 120-frame scan): the censored
+#: texels are met by any lobe that clips them.
+RHO_S_MAX = 2.0
 #: quadrature points per texel side
 DEFAULT_QUAD = 12
 #: alpha values of the brute-force initial grid
@@ -150,7 +155,7 @@ class WardFit:
         Residual variance in units of the texels' standard errors.
     at_bound : bool
         True if ``alpha`` ended on a bound of ``[0.01, 1]`` (the data are sharper / broader than the
-        model can say; ``alpha`` is then a limit, not an estimate).
+        model can say; ``alpha`` is then a limit, not an estimate), or ``rho_s`` on ``RHO_S_MAX``.
     nfev : int
         Model evaluations of the final least-squares run.
     n_saturated : int
@@ -411,8 +416,10 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
             cols.append(inv_s)
         return np.stack(cols, axis=1)
 
+    rs_max = RHO_S_MAX / unit
+    x0[1] = min(x0[1], rs_max * (1 - 1e-9))
     lo = [ALPHA_MIN, 0.0] + ([0.0] if free_d else [])
-    hi = [ALPHA_MAX, np.inf] + ([np.inf] if free_d else [])
+    hi = [ALPHA_MAX, rs_max] + ([np.inf] if free_d else [])
     x_scale = np.array([0.05, scale * 0.05] + ([scale * 0.05] if free_d else []))
     cen = None
     if emitter is not None:
@@ -452,7 +459,7 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
                 cand = [a, max(float(L @ ((v - d0) * inv_s)) / den, 1e-12) if den > 0 else 1e-12]
             for f in (1.0, 0.3, 3.0):                       # the clipped texels may want a lower/higher peak
                 xx = np.array(cand, float)
-                xx[1] *= f
+                xx[1] = min(xx[1] * f, rs_max * (1 - 1e-9))
                 cost = float(np.sum(cresid(xx) ** 2))
                 if best is None or cost < best[0]:
                     best = (cost, xx)
@@ -466,7 +473,8 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
     J = res.jac
     dof = max(len(r) - len(x), 1)
     s2 = float(r @ r) / dof
-    at_bound = bool(x[0] <= ALPHA_MIN * (1 + 1e-6) or x[0] >= ALPHA_MAX * (1 - 1e-6))
+    at_bound = bool(x[0] <= ALPHA_MIN * (1 + 1e-6) or x[0] >= ALPHA_MAX * (1 - 1e-6)
+                    or x[1] >= rs_max * (1 - 1e-6))
     with np.errstate(all="ignore"):
         try:
             cov = np.linalg.pinv(J.T @ J) * s2

@@ -136,6 +136,29 @@ def test_two_materials_labels_and_alphas(two_material_scan):
     assert _accuracy(res2.labels, truth)[0] >= 0.95
 
 
+def test_a_needle_fit_is_no_material_of_its_own(two_material_scan):
+    """Automatic k: a cluster whose Ward fit ran to the rho_s bound (a needle lobe: clipped peaks
+    that any sharp enough lobe meets) joins the largest properly fitted cluster; real lobes stay."""
+    import dataclasses
+
+    from appfusion.ward_fit import RHO_S_MAX
+
+    sc, ip, truth, _ = two_material_scan
+    res = ip.result()
+    assert res.k == 2
+    cut = ip.cut
+    clusters = list(res.clusters)
+    small = min(clusters, key=lambda c: c.area)
+    clusters[small.label] = dataclasses.replace(
+        small, fit=dataclasses.replace(small.fit, alpha=0.016, rho_s=RHO_S_MAX, at_bound=True))
+    labels, merged_clusters, merged = cut._merge_alike(res.labels.copy(), clusters)
+    assert merged == 1 and len(merged_clusters) == 1 and np.all(labels == 0)
+    # two proper, different lobes are left apart
+    labels2, kept, merged2 = cut._merge_alike(res.labels.copy(), list(res.clusters))
+    assert merged2 == 0 and len(kept) == 2
+    cut._fitters, cut._prev_labels = {}, None
+
+
 def test_painted_labels_persist_and_labels_are_stable(two_material_scan):
     sc, ip, truth, poses = two_material_scan
     r1 = ip.result()
