@@ -155,24 +155,57 @@ def histogram_percentile(hist: np.ndarray, lo: float, width: float, pct: float,
 
 def _voxel_pool(positions: np.ndarray, labels: np.ndarray, values: np.ndarray, h: float) -> np.ndarray:
     """Sums of ``values`` (P, K) over the points of the same label in the 3 x 3 x 3 voxels (side ``h``,
-    metres) around each point; (P, K). One pass of ``np.add.at`` over occupied voxels, 27 look-ups."""
-    key = np.floor(np.asarray(positions, np.float64) / h).astype(np.int64)
-    key -= key.min(axis=0) - 1
-    dims = key.max(axis=0) + 2
+    metres) around each point, interpolated trilinearly between the voxel centres around the point
+    (so that decisions taken on them do not follow the voxel grid); (P, K).
+
+    One ``np.add.at`` over the occupied voxels, then each occupied voxel's 27-neighbour sum, then
+    each point's 8 surrounding voxel centres (weights of empty ones dropped and the rest renormalised).
+    """
+    x = np.asarray(positions, np.float64) / h
+    key = np.floor(x).astype(np.int64)
+    lo = key.min(axis=0) - 2
+    key -= lo
+    dims = key.max(axis=0) + 3
     lab = np.asarray(labels, np.int64)
-    flat = ((lab * dims[0] + key[:, 0]) * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+
+    def flat_of(k):
+        return ((lab_k * dims[0] + k[:, 0]) * dims[1] + k[:, 1]) * dims[2] + k[:, 2]
+
+    lab_k = lab
+    flat = flat_of(key)
     uniq, inv = np.unique(flat, return_inverse=True)
     sums = np.zeros((len(uniq), values.shape[1]))
     np.add.at(sums, inv.reshape(-1), values)
-    out = np.zeros((len(flat), values.shape[1]))
+    pooled = np.zeros_like(sums)                           # each occupied voxel's 27-neighbour sum
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             for dz in (-1, 0, 1):
-                f = flat + (dx * dims[1] + dy) * dims[2] + dz
+                f = uniq + (dx * dims[1] + dy) * dims[2] + dz
                 j = np.minimum(np.searchsorted(uniq, f), len(uniq) - 1)
                 ok = uniq[j] == f
-                out[ok] += sums[j[ok]]
-    return out
+                pooled[ok] += sums[j[ok]]
+    # trilinear between the centres of the 8 voxels around the point (same label only)
+    u = x - lo - 0.5                                        # in units of voxel centres
+    base = np.floor(u).astype(np.int64)
+    fr = u - base
+    out = np.zeros((len(x), values.shape[1]))
+    wsum = np.zeros(len(x))
+    for cx in (0, 1):
+        for cy in (0, 1):
+            for cz in (0, 1):
+                kk = base + np.array([cx, cy, cz])
+                f = flat_of(kk)
+                j = np.minimum(np.searchsorted(uniq, f), len(uniq) - 1)
+                ok = uniq[j] == f
+                w = (np.where(cx, fr[:, 0], 1 - fr[:, 0]) * np.where(cy, fr[:, 1], 1 - fr[:, 1])
+                     * np.where(cz, fr[:, 2], 1 - fr[:, 2]))
+                w = np.where(ok, w, 0.0)
+                out[ok] += w[ok, None] * pooled[j[ok]]
+                wsum += w
+    own = np.searchsorted(uniq, flat)                       # a point always has its own voxel
+    fallback = wsum <= 1e-12
+    out[fallback] = pooled[own[fallback]]
+    return np.where(fallback[:, None], out, out / np.maximum(wsum, 1e-12)[:, None])
 
 
 def _normal_order(normals: np.ndarray) -> np.ndarray:
