@@ -128,6 +128,12 @@ class WhiteBalancer:
         (metres) at its centre or ring.
     min_pixels : int
         Fewest usable pixels for a circle to count.
+    min_contrast : float
+        A circle counts only when its pixels are at least this many times brighter (median
+        luminance) than the black paper on a ring around it (1.6 radii), where that ring is in view:
+        a pose that puts the circle's outline on the paper (tracking gone wrong) would otherwise make
+        the paper the reference white. A frame whose circles in view all fail is not balanced
+        (``reference`` None, flagged).
     """
 
     centers: np.ndarray
@@ -138,6 +144,7 @@ class WhiteBalancer:
     saturation: float = 0.98
     occlusion_tol: float = 0.02
     min_pixels: int = 6
+    min_contrast: float = 3.0
     last_reference: np.ndarray | None = None
     flagged_frames: list = field(default_factory=list)
 
@@ -168,6 +175,27 @@ class WhiteBalancer:
         nearer = np.isfinite(d) & (d < z[ok] - self.occlusion_tol)
         return bool(nearer.sum() >= 2)
 
+    def _paper_luminance(self, rgb: np.ndarray, K, world_to_cam: np.ndarray, c: np.ndarray) -> float | None:
+        """Median luminance of the paper on a ring of 1.6 radii around circle centre ``c``, or None
+        when fewer than half of the ring's 24 points are in the image."""
+        n = self.normal / np.linalg.norm(self.normal)
+        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        ang = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+        pc = transform_points(world_to_cam, c + 1.6 * self.radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2))
+        ok = pc[:, 2] > 1e-3
+        if ok.sum() < 12:
+            return None
+        uv, _ = K.project(pc[ok])
+        u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        inside = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
+        if inside.sum() < 12:
+            return None
+        lum = rgb[v[inside], u[inside]].astype(np.float64).mean(axis=1)
+        lum = lum[np.isfinite(lum)]
+        return float(np.median(lum)) if len(lum) >= 12 else None
+
     def balance(self, frame: Frame, pose: np.ndarray) -> WhiteBalanceResult:
         """White-balance one frame.
 
@@ -196,9 +224,12 @@ class WhiteBalancer:
         masks = circle_pixel_masks(self.centers, self.radius, self.normal, invert_pose(rgb_cam_to_world), K,
                                    shrink=self.erode)
         samples, used = [], []
+        w2c = invert_pose(rgb_cam_to_world)
+        n_in_view = n_low_contrast = 0
         for i, m in enumerate(masks):
             if m is None or self._hidden(frame, pose, self.centers[i]):
                 continue
+            n_in_view += 1
             mask, (r0, r1, c0, c1) = m
             px = rgb[r0:r1, c0:c1][mask].astype(np.float64)
             px = px[np.all(np.isfinite(px), axis=1) & np.all(px < self.saturation, axis=1)]
@@ -211,6 +242,10 @@ class WhiteBalancer:
             px = px[np.abs(lum - med) < 0.2 * med]          # specks, a finger on the edge, ...
             if len(px) < self.min_pixels:
                 continue
+            paper = self._paper_luminance(rgb, K, w2c, self.centers[i])
+            if paper is not None and med < self.min_contrast * paper:
+                n_low_contrast += 1                           # not a white circle there: the pose is off
+                continue
             samples.append(px)
             used.append(i)
         if samples:
@@ -221,6 +256,9 @@ class WhiteBalancer:
                 gain = self.white_level / ref
                 return WhiteBalanceResult((rgb * gain).astype(np.float32), gain, ref, used, len(allpx), False)
         self.flagged_frames.append(frame.index)
+        if n_low_contrast and n_low_contrast == n_in_view:
+            # every circle in view sits on paper: the pose is wrong, and so would be this frame's use
+            return WhiteBalanceResult(rgb.astype(np.float32, copy=True), np.ones(3), None, [], 0, True)
         if self.last_reference is None:
             return WhiteBalanceResult(rgb.astype(np.float32, copy=True), np.ones(3), None, [], 0, True)
         gain = self.white_level / self.last_reference

@@ -109,3 +109,20 @@ def test_white_balance_bad_input(seq):
         wb.balance(f.replace(rgb=f.rgb[:100]), f.pose)
     with pytest.raises(AppFusionError):
         WhiteBalancer(seq.marker_centers, -0.02)
+
+
+def test_a_pose_that_puts_the_circles_on_paper_gives_no_reference(seq):
+    """Tracking gone wrong by a few centimetres: the circles' outlines fall on the black paper. Their
+    pixels are no brighter than the paper around them, so no reference is taken from them (it would
+    have been the paper, ~20 times too dark) and the frame is flagged without a reference."""
+    f = seq.frames[4]
+    wb = WhiteBalancer(seq.marker_centers, seq.marker_radius)
+    good = wb.balance(f, f.pose)
+    assert good.reference is not None and not good.flagged
+    off = f.pose.copy()
+    off[:3, 3] += np.array([0.06, -0.05, 0.0])          # 8 cm sideways: every circle lands on paper
+    bad = wb.balance(f, off)
+    assert bad.reference is None and bad.flagged and bad.circles == []
+    # a contrast of 1 accepts anything (the old behaviour): the paper becomes the reference
+    lax = WhiteBalancer(seq.marker_centers, seq.marker_radius, min_contrast=1.0).balance(f, off)
+    assert lax.reference is not None and lax.reference.mean() < 0.3 * good.reference.mean()
