@@ -626,7 +626,8 @@ class ScanRunner:
                 env = light.envmap()
                 self._publish(envmap=env.radiance.copy(), env_coverage=env.known.copy())
         if no_marker:
-            self._note(f"environment: {no_marker} RGB frames had no visible marker and kept the last white reference")
+            self._note(f"environment: {no_marker} RGB frames were skipped: no white reference (no circle in view yet, "
+                       "or the circles in view not where the frame's pose puts them)")
         if light.n_unlocated_frames:
             self._note(f"environment: the ball's silhouette was not found in {light.n_unlocated_frames} frames "
                        "(mapped with the tracked pose)")
@@ -804,7 +805,8 @@ class ScanRunner:
             raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "
                                    "no marker visible for white balance)")
         if no_marker:
-            self._note(f"rgb: {no_marker} frames without a visible marker were skipped (no white reference yet)")
+            self._note(f"rgb: {no_marker} frames were skipped: no white reference (no circle in view yet, or the "
+                       "circles in view not where the frame's pose puts them)")
         if lost:
             self._note(f"rgb: tracking lost in {lost} frames")
         splits = self.rgb.split_by_specular() if self.config.rgb_split and not self._painted else []
