@@ -22,6 +22,9 @@ environment map's texels, never the wavelet code.
     :meth:`RGBPass.add_frame` on 640 x 480 frames of a 100k-point sphere (radius 0.2 m at 0.6 m) as
     the inverse of the median CPU time per frame (registration included; the machine may be shared, so
     CPU rather than wall time; both are in ``extra``).
+``fps_rgb_update_near_field``
+    The same with the support plane as near-field light (what a scan runs: ``dS`` per sample whose
+    lobe reaches below the horizon; ``dD`` once, its seconds in ``extra``).
 
 Sweeps: ``rgb_light_keep`` (Haar coefficients of the lighting kept per mirror node: build time against
 S error) and ``rgb_registration`` (point projection against the paper's pixel registration: time per
@@ -135,8 +138,11 @@ def point_set(quick: bool, seed: int, registration: str = "points", scene=None) 
             "_scene": (sc, poses, frames, rp.tables, render_s)}
 
 
-def update_rate(quick: bool, seed: int, tables: DoubleProductTables, registration: str = "points") -> dict[str, Any]:
-    """Median CPU time of add_frame on 640 x 480 frames of a 100k-point sphere filling the view."""
+def update_rate(quick: bool, seed: int, tables: DoubleProductTables, registration: str = "points",
+                near_field: bool = False) -> dict[str, Any]:
+    """Median CPU time of add_frame on 640 x 480 frames of a 100k-point sphere filling the view;
+    ``near_field``: with the support plane as near-field light (white circles at +-0.3 m on the
+    sphere's plane z = 0, :mod:`appfusion.near_field`), as a scan runs it."""
     env = tables.env
     n = fibonacci_sphere(100_000)
     R, c = 0.2, np.array([0.0, 0.0, 0.2])
@@ -144,7 +150,15 @@ def update_rate(quick: bool, seed: int, tables: DoubleProductTables, registratio
     alphas = np.array(tables.alphas[:2] if len(tables.alphas) >= 2 else tables.alphas * 2)
     sc = SphereScene(env, c, R, c + R * n, n, labels, np.full((len(n), 3), 0.4), np.full((2, 3), 0.3), alphas,
                      VGA_DEPTH, VGA_RGB, DEPTH_TO_RGB)
-    rp = RGBPass(sc.positions, sc.normals, labels, alphas, env, tables=tables, registration=registration)
+    nf = None
+    if near_field:
+        from appfusion.near_field import SupportPlaneLight
+
+        h = 0.3
+        nf = SupportPlaneLight(env, np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float),
+                               np.full(4, 0.025), np.full(3, 0.05), extent_m=0.6)
+    rp = RGBPass(sc.positions, sc.normals, labels, alphas, env, tables=tables, registration=registration,
+                 near_field=nf)
     frames = []
     for T in orbit_poses(c, 0.6, 2 if quick else 8, seed=seed + 2):
         t, kind, _ = sc._raycast(T, VGA_DEPTH)
@@ -163,7 +177,8 @@ def update_rate(quick: bool, seed: int, tables: DoubleProductTables, registratio
     t_cpu = float(np.median(cpu))
     return {"points": len(n), "samples_per_frame": float(np.mean(used)), "cpu_ms": 1e3 * t_cpu,
             "wall_ms": 1e3 * float(np.median(wall)), "fps_cpu": 1.0 / t_cpu, "registration": registration,
-            "state_mb": rp.nbytes / 2 ** 20}
+            "state_mb": rp.nbytes / 2 ** 20, "near_field": near_field,
+            "near_field_setup_s": float(getattr(rp, "near_field_seconds", 0.0))}
 
 
 def run(ctx) -> dict[str, float | None]:
@@ -176,6 +191,8 @@ def run(ctx) -> dict[str, float | None]:
     extra["point_set"] = ps
     rate = update_rate(quick, ctx.seed, T)
     extra["update"] = rate
+    rate_nf = update_rate(quick, ctx.seed, T, near_field=True)
+    extra["update_near_field"] = rate_nf
     if sweep_keep:
         ctx.add_sweep("rgb_light_keep", "double_product_rel_err", "all", sweep_keep,
                       note="Haar coefficients of the pre-rotated lighting kept per mirror node (of 1024; 4096 "
@@ -196,7 +213,8 @@ def run(ctx) -> dict[str, float | None]:
     ctx.extra["rgb"] = extra
     return {"double_product_rel_err": dp["rel_rms"], "wavelet_tables_mb": dp["tables_mb"],
             "wavelet_build_s": dp["build_cpu_s"], "rho_d_median_rel_err": ps["rho_d_median_rel_err"],
-            "rho_s_rel_err": ps["rho_s_max_abs"], "fps_rgb_update": rate["fps_cpu"]}
+            "rho_s_rel_err": ps["rho_s_max_abs"], "fps_rgb_update": rate["fps_cpu"],
+            "fps_rgb_update_near_field": rate_nf["fps_cpu"]}
 
 
 if __name__ == "__main__":  # pragma: no cover
