@@ -456,7 +456,10 @@ def test_paced_source_realtime_and_fast():
             time.sleep(0.3)  # a pause of the engine: no burst afterwards
     gaps = np.diff(times)
     assert times[-1] - times[0] >= 14 * 0.02 * 0.9 + 0.3
-    assert np.all(gaps[7:] >= 0.015), "frames after a pause were delivered in a burst"
+    # a burst would deliver the ~15 frames the pause "owes" at once (gaps ~0); a loaded machine may
+    # make one frame late and the next one catch up (a short gap): that is pacing, not a burst
+    assert np.median(gaps[7:]) >= 0.015 and np.sum(gaps[7:] < 0.005) <= 1, \
+        f"frames after a pause were delivered in a burst: gaps {np.round(gaps[7:], 4)}"
     assert src.frames == 16 and src.ended and src.error is None
     assert len(src) == 16 and src.is_recording  # forwarded
     # a 30 s hole in a recording is not slept through; the frames around it keep their pace
