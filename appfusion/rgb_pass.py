@@ -168,10 +168,9 @@ def _voxel_pool(positions: np.ndarray, labels: np.ndarray, values: np.ndarray, h
     dims = key.max(axis=0) + 3
     lab = np.asarray(labels, np.int64)
 
-    def flat_of(k):
-        return ((lab_k * dims[0] + k[:, 0]) * dims[1] + k[:, 1]) * dims[2] + k[:, 2]
+    def flat_of(k):                                         # one integer per (label, voxel)
+        return ((lab * dims[0] + k[:, 0]) * dims[1] + k[:, 1]) * dims[2] + k[:, 2]
 
-    lab_k = lab
     flat = flat_of(key)
     uniq, inv = np.unique(flat, return_inverse=True)
     sums = np.zeros((len(uniq), values.shape[1]))
