@@ -65,6 +65,45 @@ def ward_retro(alpha, cos_h) -> np.ndarray:
     return ward_half(alpha, cos_h, cos_h, cos_h)
 
 
+def sample_ward(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ward half-vector sampling (Walter 2005) in the local frame (normal +z).
+
+    Parameters
+    ----------
+    alpha : float or ndarray
+        Roughness, broadcast against ``u1``.
+    wo_l : (..., 3) ndarray
+        Unit view directions, local frame.
+    u1, u2 : ndarray
+        Uniforms in (0, 1): ``tan^2 theta_h = -alpha^2 log u1``, ``phi_h = 2 pi u2``.
+
+    Returns
+    -------
+    wi : (..., 3) ndarray
+        The sampled lighting directions (``w_o`` reflected about the half vector).
+    cos_oh : (...) ndarray
+        ``w_o . h``; where it is <= 0 the half vector faces away from the viewer and the sample is void.
+    """
+    tan2 = -(np.asarray(alpha) ** 2) * np.log(np.maximum(u1, 1e-12))
+    ch = 1.0 / np.sqrt(1.0 + tan2)
+    sh = np.sqrt(np.maximum(1 - ch * ch, 0))
+    phi = 2 * np.pi * np.asarray(u2)
+    h = np.stack([sh * np.cos(phi), sh * np.sin(phi), ch], axis=-1)
+    cos_oh = np.sum(wo_l * h, -1)
+    return 2 * cos_oh[..., None] * h - wo_l, cos_oh
+
+
+def ward_pdf(alpha, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
+    """Solid-angle density of :func:`sample_ward` drawing ``wi_l`` for ``wo_l`` (local frame), 1/sr:
+    ``exp(-tan^2 theta_h / alpha^2) / (pi alpha^2 cos^3 theta_h) / (4 |w_o . h|)``."""
+    h = wi_l + wo_l
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    ch = np.clip(h[..., 2], 1e-6, 1)
+    tan2 = (1 - ch * ch) / (ch * ch)
+    pdf_h = np.exp(-tan2 / np.asarray(alpha) ** 2) / (np.pi * np.asarray(alpha) ** 2 * ch ** 3)
+    return pdf_h / (4 * np.maximum(np.abs(np.sum(wo_l * h, -1)), 1e-6))
+
+
 def local_frame(n: np.ndarray) -> np.ndarray:
     """Orthonormal frames (..., 3, 3) whose rows are (t, b, n) for unit normals ``n`` (..., 3).
 

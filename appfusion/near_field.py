@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import local_frame, ward
+from .brdf import local_frame, sample_ward, ward, ward_pdf
 from .errors import AppFusionError
 
 __all__ = ["SupportPlaneLight", "paper_radiance_from_env"]
@@ -143,7 +143,8 @@ class SupportPlaneLight:
                                  f"{self.paper}, {self.circle}")
         self.extent = float(extent_m)
         self.n_quad = int(n_quad)
-        self._env_q = _block_downsample(self.env, self.n_quad)[1].reshape(-1, 3)      # lower face
+        self._env_coarse = _block_downsample(self.env, self.n_quad)                 # (2, n_quad, n_quad, 3)
+        self._env_q = self._env_coarse[1].reshape(-1, 3)                             # lower face
         self._dir_q = oc.sphere_directions(self.n_quad)[1].reshape(-1, 3)
         self._om_q = oc.sphere_solid_angles(self.n_quad)[1].reshape(-1)
         self.shadow = None            # (nodes, grid) of the object's shadow factor on the plane
@@ -177,14 +178,12 @@ class SupportPlaneLight:
         gx, gy = np.meshgrid(nodes, nodes, indexing="ij")
         pts = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, 1e-4)], axis=1)
         up_d = oc.sphere_directions(self.n_quad)[0].reshape(-1, 3)
-        up_L = _block_downsample(self.env, self.n_quad)[0].reshape(-1, 3).mean(axis=1)
+        up_L = self._env_coarse[0].reshape(-1, 3).mean(axis=1)
         w = np.maximum(up_L, 0) * np.maximum(up_d[:, 2], 0) * oc.sphere_solid_angles(self.n_quad)[0].reshape(-1)
         total = w.sum()
         if total <= 0:
             return self
         top = np.argsort(-w)[:n_dirs]
-        # only plane points the object can shadow: inside the footprint of the object's bounding box
-        # swept along the chosen directions
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F.astype(np.uint32)))
         occ_w = np.zeros(len(pts))
@@ -348,25 +347,20 @@ class SupportPlaneLight:
         g = (np.arange(k) + 0.5) / k
         u1, u2 = np.meshgrid(g, g, indexing="ij")
         u1, u2 = u1.ravel(), u2.ravel()                                         # (K,)
-        for s in range(0, len(idx), max(4096 * 4 // len(u1), 64)):
-            j = idx[s:s + max(4096 * 4 // len(u1), 64)]
+        chunk = max(4096 * 4 // len(u1), 64)                                 # ~16k lobe rays at a time
+        for s in range(0, len(idx), chunk):
+            j = idx[s:s + chunk]
             m = len(j)
             a = al[j][:, None]
             F = local_frame(n[j])
             vl = np.einsum("mij,mj->mi", F, v[j])
             uu1 = (u1[None, :] + rng.random((m, 1)) / k) % 1.0
             uu2 = (u2[None, :] + rng.random((m, 1))) % 1.0
-            tan2 = -(a ** 2) * np.log(np.maximum(1.0 - uu1, 1e-12))
-            ch = 1.0 / np.sqrt(1.0 + tan2)
-            sh = np.sqrt(np.maximum(1.0 - ch * ch, 0.0))
-            ph = 2 * np.pi * uu2
-            h = np.stack([sh * np.cos(ph), sh * np.sin(ph), ch], -1)            # (m, K, 3)
-            vh = np.sum(vl[:, None, :] * h, -1)
-            wi = 2 * vh[..., None] * h - vl[:, None, :]
+            vlk = np.broadcast_to(vl[:, None, :], (m, len(u1), 3))
+            wi, vh = sample_ward(a, vlk, uu1, uu2)                                 # (m, K, 3), (m, K)
             ci = wi[..., 2]
-            pdf = np.exp(-tan2 / a ** 2) / (np.pi * a ** 2 * ch ** 3) / (4 * np.maximum(np.abs(vh), 1e-9))
-            f = ward(a, wi, np.broadcast_to(vl[:, None, :], wi.shape))
-            wgt = np.where((ci > 0) & (vh > 0), f * ci / np.maximum(pdf, 1e-300), 0.0)   # (m, K)
+            f = ward(a, wi, vlk)
+            wgt = np.where((ci > 0) & (vh > 0), f * ci / np.maximum(ward_pdf(a, wi, vlk), 1e-300), 0.0)
             wi_w = np.einsum("mji,mkj->mki", F, wi)
             dL = self.delta_radiance(np.repeat(p[j], len(u1), 0), wi_w.reshape(-1, 3)).reshape(m, len(u1), 3)
             out[j] = np.einsum("mk,mkc->mc", wgt, dL) / len(u1)

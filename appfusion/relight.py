@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import local_frame, ward
+from .brdf import local_frame, sample_ward, ward, ward_pdf
 from .errors import AppFusionError
 from .frame import Intrinsics
 from .result import ScanResult
@@ -324,25 +324,6 @@ class EnvSampler:
         return float(np.sqrt(4 * np.pi / (2 * self.n * self.n)))
 
 
-def _sample_ward(alpha, wo_l, u1, u2):
-    """Ward half-vector sampling in the local frame; returns w_i (M, 3)."""
-    tan2 = -(alpha ** 2) * np.log(np.maximum(u1, 1e-12))
-    ch = 1.0 / np.sqrt(1.0 + tan2)
-    sh = np.sqrt(np.maximum(1 - ch * ch, 0))
-    phi = 2 * np.pi * u2
-    h = np.stack([sh * np.cos(phi), sh * np.sin(phi), ch], axis=-1)
-    return 2 * np.sum(wo_l * h, -1, keepdims=True) * h - wo_l
-
-
-def _pdf_ward(alpha, wi_l, wo_l):
-    h = wi_l + wo_l
-    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    ch = np.clip(h[..., 2], 1e-6, 1)
-    tan2 = (1 - ch * ch) / (ch * ch)
-    pdf_h = np.exp(-tan2 / alpha ** 2) / (np.pi * alpha ** 2 * ch ** 3)
-    return pdf_h / (4 * np.maximum(np.abs(np.sum(wo_l * h, -1)), 1e-6))
-
-
 def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | EnvSampler,
                  spp: int = 256, scene=None, seed: int = 0, chunk: int = 4096) -> np.ndarray:
     """Outgoing radiance (linear RGB) at surface points towards ``wo`` (paper Eq. 2 with Eq. 1).
@@ -485,7 +466,7 @@ def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng)
     u = np.stack([_stratified(rng, m, spp) for _ in range(3)], -1)
     choose_spec = u[..., 0] < q_spec[:, None]
     cos_dir = np.stack(_cosine(u[..., 1], u[..., 2]), -1)
-    spec_dir = _sample_ward(al[:, None], wo_l[:, None, :], u[..., 1], u[..., 2])
+    spec_dir, _ = sample_ward(al[:, None], wo_l[:, None, :], u[..., 1], u[..., 2])
     wiB_l = np.where(choose_spec[..., None], spec_dir, cos_dir)
     dB = np.einsum("mji,msj->msi", F, wiB_l)
     wiA_l = np.einsum("mij,msj->msi", F, dA)
@@ -495,7 +476,7 @@ def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng)
         cos_i = wi_l[..., 2]
         ok = cos_i > 1e-6
         f_spec = ward(al[:, None], wi_l, np.broadcast_to(wo_l[:, None, :], wi_l.shape))
-        pdf_b = (1 - q_spec[:, None]) * np.maximum(cos_i, 0) / np.pi + q_spec[:, None] * _pdf_ward(
+        pdf_b = (1 - q_spec[:, None]) * np.maximum(cos_i, 0) / np.pi + q_spec[:, None] * ward_pdf(
             al[:, None], wi_l, wo_l[:, None, :])
         pdf_a = sampler.pdf(wi)
         w = np.where(ok, cos_i, 0.0) / np.maximum(spp * (pdf_a + pdf_b), 1e-30)
