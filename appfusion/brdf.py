@@ -65,7 +65,7 @@ def ward_retro(alpha, cos_h) -> np.ndarray:
     return ward_half(alpha, cos_h, cos_h, cos_h)
 
 
-def sample_ward(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sample_ward(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Ward half-vector sampling (Walter 2005) in the local frame (normal +z).
 
     Parameters
@@ -83,14 +83,19 @@ def sample_ward(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tupl
         The sampled lighting directions (``w_o`` reflected about the half vector).
     cos_oh : (...) ndarray
         ``w_o . h``; where it is <= 0 the half vector faces away from the viewer and the sample is void.
+    pdf : (...) ndarray
+        The samples' solid-angle density, as :func:`ward_pdf` gives it (from the sampled half vector,
+        without recomputing it).
     """
-    tan2 = -(np.asarray(alpha) ** 2) * np.log(np.maximum(u1, 1e-12))
+    a2 = np.asarray(alpha) ** 2
+    tan2 = -a2 * np.log(np.maximum(u1, 1e-12))
     ch = 1.0 / np.sqrt(1.0 + tan2)
     sh = np.sqrt(np.maximum(1 - ch * ch, 0))
     phi = 2 * np.pi * np.asarray(u2)
     h = np.stack([sh * np.cos(phi), sh * np.sin(phi), ch], axis=-1)
     cos_oh = np.sum(wo_l * h, -1)
-    return 2 * cos_oh[..., None] * h - wo_l, cos_oh
+    pdf = np.exp(-tan2 / a2) / (np.pi * a2 * ch ** 3) / (4 * np.maximum(np.abs(cos_oh), 1e-6))
+    return 2 * cos_oh[..., None] * h - wo_l, cos_oh, pdf
 
 
 def ward_pdf(alpha, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:

@@ -38,7 +38,7 @@ import math
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import local_frame, sample_ward, ward, ward_pdf
+from .brdf import local_frame, sample_ward, ward
 from .errors import AppFusionError
 
 __all__ = ["SupportPlaneLight", "paper_radiance_from_env"]
@@ -357,10 +357,10 @@ class SupportPlaneLight:
             uu1 = (u1[None, :] + rng.random((m, 1)) / k) % 1.0
             uu2 = (u2[None, :] + rng.random((m, 1))) % 1.0
             vlk = np.broadcast_to(vl[:, None, :], (m, len(u1), 3))
-            wi, vh = sample_ward(a, vlk, uu1, uu2)                                 # (m, K, 3), (m, K)
+            wi, vh, pdf = sample_ward(a, vlk, uu1, uu2)                            # (m, K, 3), (m, K), (m, K)
             ci = wi[..., 2]
             f = ward(a, wi, vlk)
-            wgt = np.where((ci > 0) & (vh > 0), f * ci / np.maximum(ward_pdf(a, wi, vlk), 1e-300), 0.0)
+            wgt = np.where((ci > 0) & (vh > 0), f * ci / np.maximum(pdf, 1e-300), 0.0)
             wi_w = np.einsum("mji,mkj->mki", F, wi)
             dL = self.delta_radiance(np.repeat(p[j], len(u1), 0), wi_w.reshape(-1, 3)).reshape(m, len(u1), 3)
             out[j] = np.einsum("mk,mkc->mc", wgt, dL) / len(u1)

@@ -466,7 +466,7 @@ def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng)
     u = np.stack([_stratified(rng, m, spp) for _ in range(3)], -1)
     choose_spec = u[..., 0] < q_spec[:, None]
     cos_dir = np.stack(_cosine(u[..., 1], u[..., 2]), -1)
-    spec_dir, _ = sample_ward(al[:, None], wo_l[:, None, :], u[..., 1], u[..., 2])
+    spec_dir, _, _ = sample_ward(al[:, None], wo_l[:, None, :], u[..., 1], u[..., 2])
     wiB_l = np.where(choose_spec[..., None], spec_dir, cos_dir)
     dB = np.einsum("mji,msj->msi", F, wiB_l)
     wiA_l = np.einsum("mij,msj->msi", F, dA)

@@ -286,3 +286,22 @@ def test_degenerate_inputs_give_finite_radiance():
     L4 = shade_points(np.zeros((2, 3)), [d, -d], [d, d], np.full((2, 3), 0.5), np.full((2, 3), 0.3), [0.2, 0.2], s,
                       spp=4)
     assert np.all(np.isfinite(L4)) and np.all(L4[0] > 0) and np.all(L4[1] == 0)
+
+
+def test_sample_ward_density_matches_ward_pdf_and_integrates_to_one():
+    """The density sample_ward returns is ward_pdf of what it drew, and importance sampling with it
+    integrates a known function: int max(w.z, 0) dw = pi."""
+    from appfusion.brdf import sample_ward, ward_pdf
+
+    rng = np.random.default_rng(3)
+    wo = np.array([0.3, -0.2, 0.93])
+    wo /= np.linalg.norm(wo)
+    u1, u2 = rng.random(20000), rng.random(20000)
+    for alpha in (0.05, 0.3):
+        wi, c, pdf = sample_ward(alpha, np.broadcast_to(wo, (len(u1), 3)), u1, u2)
+        ok = c > 0
+        np.testing.assert_allclose(pdf[ok], ward_pdf(alpha, wi[ok], np.broadcast_to(wo, wi[ok].shape)), rtol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(wi, axis=1), 1.0, atol=1e-12)
+    wi, c, pdf = sample_ward(0.5, np.broadcast_to(np.array([0, 0, 1.0]), (len(u1), 3)), u1, u2)
+    est = np.mean(np.where(c > 0, np.maximum(wi[:, 2], 0) / pdf, 0.0))
+    assert abs(est / np.pi - 1) < 0.15
