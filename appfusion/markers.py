@@ -91,6 +91,18 @@ class MarkerConfig:
             raise AppFusionError(f"markers: key_radius_m {self.key_radius_m} must exceed radius_m {self.radius_m} "
                                  f"by more than the radius tolerance ({self.radius_tol:.0%})")
 
+    def centres(self) -> np.ndarray:
+        """Printed circle centres (4, 3) in the marker frame, metres: circle 1 (the key) at (+h, +h),
+        then clockwise seen from +z, h = side / 2. Needs ``side_m``."""
+        if self.side_m is None:
+            raise AppFusionError("markers: the circle centres need the printed layout's side (side_m)")
+        h = self.side_m / 2
+        return np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+
+    def radii(self) -> np.ndarray:
+        """Printed radius of each circle (4,), metres: the key circle's first."""
+        return np.array([self.key_radius_m or self.radius_m] + [self.radius_m] * 3, float)
+
     def radius_ok(self, r: float) -> bool:
         """True if a measured radius matches a printed circle (the key circle included)."""
         radii = [self.radius_m] + ([self.key_radius_m] if self.key_radius_m else [])

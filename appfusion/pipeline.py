@@ -864,8 +864,7 @@ class ScanRunner:
 
         mc = marker_config_from_meta(self.source.meta if isinstance(self.source.meta, dict) else {})
         if mc.side_m:
-            h = mc.side_m / 2
-            centers = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+            centers = mc.centres()
         elif geo is not None and geo.gp.tracker.initialised:
             from .frame import invert_pose, transform_points
 
@@ -894,11 +893,8 @@ class ScanRunner:
             self._note("rgb: near-field plane off (needs the printed marker layout and the mirror ball's centre); "
                        "the plane is lit as the ball saw it")
             return None
-        h = mc.side_m / 2
-        centres = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
-        radii = np.array([mc.key_radius_m or mc.radius_m, mc.radius_m, mc.radius_m, mc.radius_m], float)
         try:
-            nf = SupportPlaneLight.from_scan(self.env.radiance, centres, radii, sphere["center"],
+            nf = SupportPlaneLight.from_scan(self.env.radiance, mc.centres(), mc.radii(), sphere["center"],
                                              sphere.get("radius"))
         except AppFusionError as e:
             self._note(f"rgb: near-field plane off ({e})")
@@ -1238,8 +1234,7 @@ class _MarkerPose:
         if not (self.cfg.side_m and self.cfg.key_radius_m):
             raise PassMissingError("the RGB pass has no depth-tracked poses, and marker poses need the printed "
                                    "layout with its key circle (session meta extra.markers side_m, key_radius_m)")
-        h = self.cfg.side_m / 2
-        self.layout = np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float)
+        self.layout = self.cfg.centres()
 
     def track(self, frame: Frame) -> _Track:
         from .fusion import kabsch

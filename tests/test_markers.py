@@ -234,3 +234,15 @@ def test_key_circle_makes_numbering_absolute():
         assert det.radii[0] == pytest.approx(0.035, abs=0.003)
     with pytest.raises(AppFusionError, match="key_radius_m"):
         MarkerConfig(radius_m=0.025, key_radius_m=0.026)
+
+
+def test_printed_layout_centres_and_radii():
+    """Circle 1, the key, at (+h, +h), then clockwise from +z; without the side there is no layout."""
+    mc = MarkerConfig(radius_m=0.025, side_m=0.30, key_radius_m=0.035)
+    C = mc.centres()
+    np.testing.assert_allclose(C, [[0.15, 0.15, 0], [0.15, -0.15, 0], [-0.15, -0.15, 0], [-0.15, 0.15, 0]])
+    assert np.cross(C[1] - C[0], C[2] - C[1])[2] < 0          # clockwise seen from +z
+    np.testing.assert_allclose(mc.radii(), [0.035, 0.025, 0.025, 0.025])
+    np.testing.assert_allclose(MarkerConfig(radius_m=0.02, side_m=0.3).radii(), [0.02] * 4)
+    with pytest.raises(AppFusionError, match="side"):
+        MarkerConfig(radius_m=0.02).centres()

@@ -152,11 +152,11 @@ def update_rate(quick: bool, seed: int, tables: DoubleProductTables, registratio
                      VGA_DEPTH, VGA_RGB, DEPTH_TO_RGB)
     nf = None
     if near_field:
+        from appfusion.markers import MarkerConfig
         from appfusion.near_field import SupportPlaneLight
 
-        h = 0.3
-        nf = SupportPlaneLight(env, np.array([[h, h, 0], [h, -h, 0], [-h, -h, 0], [-h, h, 0]], float),
-                               np.full(4, 0.025), np.full(3, 0.05), extent_m=0.6)
+        mc = MarkerConfig(radius_m=0.025, side_m=0.6)
+        nf = SupportPlaneLight(env, mc.centres(), mc.radii(), np.full(3, 0.05), extent_m=0.6)
     rp = RGBPass(sc.positions, sc.normals, labels, alphas, env, tables=tables, registration=registration,
                  near_field=nf)
     frames = []
