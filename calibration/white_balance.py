@@ -57,6 +57,16 @@ class WhiteBalanceResult:
     flagged: bool
 
 
+def _ring(center: np.ndarray, radius: float, normal: np.ndarray, n: int) -> np.ndarray:
+    """``n`` points (n, 3) on a circle of ``radius`` about ``center``, in the plane of ``normal``."""
+    nn = np.asarray(normal, float) / np.linalg.norm(normal)
+    e1 = np.cross(nn, [1.0, 0.0, 0.0] if abs(nn[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nn, e1)
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.asarray(center, float) + radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+
+
 def circle_pixel_masks(centers: np.ndarray, radius: float, normal: np.ndarray, world_to_cam: np.ndarray,
                        K, shrink: float = 0.25, n_ring: int = 48) -> list[tuple[np.ndarray, tuple] | None]:
     """Pixels covered by each circle (shrunk by ``shrink`` x radius) in a camera image.
@@ -80,12 +90,7 @@ def circle_pixel_masks(centers: np.ndarray, radius: float, normal: np.ndarray, w
     list, per circle: None when (partly) outside the image or behind the camera, else
     ``(mask, (r0, r1, c0, c1))`` with a boolean mask of the bounding window ``[r0:r1, c0:c1]``.
     """
-    n = np.asarray(normal, float) / np.linalg.norm(normal)
-    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
-    ang = np.linspace(0, 2 * np.pi, n_ring, endpoint=False)
-    ring = (1.0 - shrink) * radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+    ring = _ring(np.zeros(3), (1.0 - shrink) * radius, normal, n_ring)
     out = []
     for c in np.asarray(centers, float):
         pc = transform_points(world_to_cam, c + ring)
@@ -159,12 +164,7 @@ class WhiteBalancer:
         if frame.depth is None or frame.depth_intrinsics is None:
             return False
         K = frame.depth_intrinsics
-        n = self.normal / np.linalg.norm(self.normal)
-        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
-        pts = np.vstack([c, c + 0.7 * self.radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)])
+        pts = np.vstack([c, _ring(c, 0.7 * self.radius, self.normal, 8)])
         pc = transform_points(invert_pose(pose), pts)
         uv, z = K.project(pc)
         u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
@@ -178,12 +178,7 @@ class WhiteBalancer:
     def _paper_luminance(self, rgb: np.ndarray, K, world_to_cam: np.ndarray, c: np.ndarray) -> float | None:
         """Median luminance of the paper on a ring of 1.6 radii around circle centre ``c``, or None
         when fewer than half of the ring's 24 points are in the image."""
-        n = self.normal / np.linalg.norm(self.normal)
-        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        ang = np.linspace(0, 2 * np.pi, 24, endpoint=False)
-        pc = transform_points(world_to_cam, c + 1.6 * self.radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2))
+        pc = transform_points(world_to_cam, _ring(c, 1.6 * self.radius, self.normal, 24))
         ok = pc[:, 2] > 1e-3
         if ok.sum() < 12:
             return None
@@ -220,11 +215,9 @@ class WhiteBalancer:
         pose = np.asarray(pose, float)
         if pose.shape != (4, 4) or not np.isfinite(pose).all():
             raise AppFusionError(f"white balance: frame {frame.index} has no valid pose")
-        rgb_cam_to_world = pose @ invert_pose(frame.depth_to_rgb)
-        masks = circle_pixel_masks(self.centers, self.radius, self.normal, invert_pose(rgb_cam_to_world), K,
-                                   shrink=self.erode)
+        w2c = invert_pose(pose @ invert_pose(frame.depth_to_rgb))          # world -> RGB camera
+        masks = circle_pixel_masks(self.centers, self.radius, self.normal, w2c, K, shrink=self.erode)
         samples, used = [], []
-        w2c = invert_pose(rgb_cam_to_world)
         n_in_view = n_low_contrast = 0
         for i, m in enumerate(masks):
             if m is None or self._hidden(frame, pose, self.centers[i]):
@@ -256,10 +249,9 @@ class WhiteBalancer:
                 gain = self.white_level / ref
                 return WhiteBalanceResult((rgb * gain).astype(np.float32), gain, ref, used, len(allpx), False)
         self.flagged_frames.append(frame.index)
-        if n_low_contrast and n_low_contrast == n_in_view:
-            # every circle in view sits on paper: the pose is wrong, and so would be this frame's use
-            return WhiteBalanceResult(rgb.astype(np.float32, copy=True), np.ones(3), None, [], 0, True)
-        if self.last_reference is None:
+        # no reference at all when none was seen yet, or when every circle in view sits on paper (the
+        # pose is wrong, and so would be this frame's use)
+        if self.last_reference is None or (n_low_contrast and n_low_contrast == n_in_view):
             return WhiteBalanceResult(rgb.astype(np.float32, copy=True), np.ones(3), None, [], 0, True)
         gain = self.white_level / self.last_reference
         return WhiteBalanceResult((rgb * gain).astype(np.float32), gain, self.last_reference.copy(), [], 0, True)
