@@ -491,7 +491,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     }
     (truth / "markers.json").write_text(json.dumps(markers, indent=2))
     (truth / "ir_model.json").write_text(json.dumps(ir_model.to_json(), indent=2))
-    np.savez_compressed(truth / "ir_pattern.npz", t=ir_model.pattern(), cell_rad=ir_model.cell_rad)
+    np.savez_compressed(truth / "ir_pattern.npz", t=ir_model.pattern(), cell_rad=ir_model.cell_rad,
+                        grid_offset_cells=np.asarray(ir_model.grid_offset_cells))
     (truth / "frames.json").write_text(json.dumps({"frames": frames_truth, "base_exposure": base_exposure,
                                                    "max_radiance": max_rad}, indent=1))
     ref_info = None
@@ -647,8 +648,9 @@ def render_references(obj: ObjectModel, env: envmaps.Environment, folder: Path, 
 
 
 #: bumped whenever the scanner's output for the demo changes, so that a cached demo is rendered anew
-#: (2: the IR object pass orbits down to 5 degrees; 3: 200 frames a pass)
-DEMO_VERSION = 3
+#: (2: the IR object pass orbits down to 5 degrees; 3: 200 frames a pass; 4: the emitter pattern's grid
+#: offset from the camera's pixel grid)
+DEMO_VERSION = 4
 
 
 def demo_session(cache_dir: str | os.PathLike, show_progress: bool = True) -> Path:

@@ -142,6 +142,11 @@ class IRModel:
     ref_albedo: float = 0.8
     ref_level: float = 0.6
     cell_rad: float = 1.0 / 580.0
+    #: the pattern grid's offset from the camera's pixel grid, cells: a projector's pattern is not
+    #: aligned with the camera's rows. With no offset the emitter sits on the camera's x axis, so every
+    #: pixel ray's emitter direction fell exactly on a cell boundary in y, and float rounding chose the
+    #: row: the field was not a function of direction (14 % per-pixel spread against any fixed map)
+    grid_offset_cells: tuple = (0.37, 0.29)
     corr_cells: float = 1.5
     half_extent: tuple = (0.75, 0.6)
     emitter_position_m: tuple = (0.075, 0.0, 0.0)
@@ -182,8 +187,9 @@ class IRModel:
         t = self.pattern()
         ny, nx = t.shape
         z = np.maximum(v_cam[:, 2], 1e-6)
-        ix = np.clip(np.rint(v_cam[:, 0] / z / self.cell_rad).astype(np.int64) + nx // 2, 0, nx - 1)
-        iy = np.clip(np.rint(v_cam[:, 1] / z / self.cell_rad).astype(np.int64) + ny // 2, 0, ny - 1)
+        ox, oy = self.grid_offset_cells
+        ix = np.clip(np.rint(v_cam[:, 0] / z / self.cell_rad - ox).astype(np.int64) + nx // 2, 0, nx - 1)
+        iy = np.clip(np.rint(v_cam[:, 1] / z / self.cell_rad - oy).astype(np.int64) + ny // 2, 0, ny - 1)
         return t[iy, ix]
 
     def incident(self, v_cam: np.ndarray) -> np.ndarray:
@@ -208,13 +214,15 @@ class IRModel:
     def to_json(self) -> dict:
         d = {k: v for k, v in self.__dict__.items() if not k.startswith("_")}
         d["half_extent"] = list(self.half_extent)
+        d["grid_offset_cells"] = list(self.grid_offset_cells)
         d["emitter_position_m"] = list(self.emitter_position_m)
         d["gain"] = self.gain
         d["model"] = ("raw = gain * R^gamma + b0 + fpn + N(0, sigma_read^2 + shot * gain * R^gamma), rounded, "
                       "clipped to [0, 2^bits - 1]; R = x cos(theta_i) (rho_d_ir/pi + rho_s_ir f); "
                       "x = (t + shift) / (scale * d_emitter); t ~ Gamma(k, theta) field over emitter directions")
-        d["pattern_grid"] = ("t[row, col] at direction (x/z, y/z) = ((col - cols//2) * cell_rad, "
-                             "(row - rows//2) * cell_rad) from the emitter, camera axes; nearest cell")
+        d["pattern_grid"] = ("t[row, col] at direction (x/z, y/z) = ((col - cols//2 + grid_offset_cells[0]) * "
+                             "cell_rad, (row - rows//2 + grid_offset_cells[1]) * cell_rad) from the emitter, "
+                             "camera axes; nearest cell")
         return d
 
 
