@@ -33,6 +33,12 @@ multiplicative noise, coefficient of variation ``sqrt(k) theta / (k theta + shif
 Kinect, none for a flat emitter), so averaging samples (HBSAB, §5.1) converges to ``f_r``. A white
 sheet of albedo ``sheet_albedo`` gives ``sheet_albedo / pi`` on average. Raw values at or above
 ``saturation`` are invalid (clipped highlights).
+
+A shifted-Gamma profile may also carry the emitter's *pattern* (:mod:`calibration.ir_pattern`): the
+relative intensity ``m`` of the fixed dot pattern over emitter directions, calibrated from the same
+sheet frames. Dividing a sample by ``m`` at its emitter direction (:meth:`IRProfile.pattern_at`)
+removes most of the multiplicative noise and, above all, its fixed per-direction bias. The map is a
+``.npz`` file beside the profile's JSON (``pattern_file``, relative to it).
 """
 
 from __future__ import annotations
@@ -83,6 +89,10 @@ class IRProfile:
     device : str
     fit : dict
         Diagnostics of the calibration (residuals, distances, frames used).
+    pattern_file : str or None
+        File name of the emitter pattern map, relative to the profile's JSON (None: no map).
+    pattern : calibration.ir_pattern.EmitterPattern or None
+        The map itself (not part of the JSON; read from ``pattern_file`` by :meth:`load`).
     """
 
     emitter_model: str = "shifted_gamma"
@@ -100,6 +110,8 @@ class IRProfile:
     emitter_position_m: list = field(default_factory=lambda: [0.075, 0.0, 0.0])
     device: str = ""
     fit: dict = field(default_factory=dict)
+    pattern_file: str | None = None
+    pattern: Any = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.emitter_model not in EMITTER_MODELS:
@@ -232,11 +244,23 @@ class IRProfile:
         with np.errstate(invalid="ignore", divide="ignore"):
             cos_i = np.sum(L * normals, axis=-1) / d
         s, ok = self.apply(ir, d, cos_i)
+        if self.pattern is not None:
+            s = s / self.pattern_at(P, e)
         return np.where(ok, s, np.nan).astype(np.float32)
+
+    def pattern_at(self, P, emitter_position=None) -> np.ndarray:
+        """Relative emitter intensity ``m`` at camera-frame points ``P`` (..., 3), float32: the pattern
+        map's value at each point's emitter direction (:mod:`calibration.ir_pattern`); 1 without a map."""
+        P = np.asarray(P)
+        if self.pattern is None:
+            return np.ones(P.shape[:-1], dtype=np.float32)
+        e = self.emitter_position_m if emitter_position is None else emitter_position
+        return self.pattern.lookup_points(P, e)
 
     # -- persistence ------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
+        d.pop("pattern", None)
         d["version"] = PROFILE_VERSION
         return d
 
@@ -247,7 +271,7 @@ class IRProfile:
         v = d.get("version", PROFILE_VERSION)
         if v != PROFILE_VERSION:
             raise CalibrationError(f"{where}: profile version {v!r} is not supported (expected {PROFILE_VERSION})")
-        known = {f for f in cls.__dataclass_fields__}
+        known = {f for f in cls.__dataclass_fields__} - {"pattern"}
         unknown = set(d) - known - {"version"}
         if unknown:
             raise CalibrationError(f"{where}: unknown field(s) {sorted(unknown)}")
@@ -259,9 +283,12 @@ class IRProfile:
             raise CalibrationError(f"{where}: {e}") from None
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the profile as JSON (atomically)."""
+        """Write the profile as JSON (atomically), and its pattern map beside it (``NAME.pattern.npz``)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
+        if self.pattern is not None:
+            self.pattern_file = path.stem + ".pattern.npz"
+            self.pattern.save(path.parent / self.pattern_file)
         tmp = path.with_suffix(path.suffix + ".tmp")
         tmp.write_text(json.dumps(self.to_json(), indent=2, default=_json_default) + "\n")
         os.replace(tmp, path)
@@ -278,7 +305,12 @@ class IRProfile:
             d = json.loads(text)
         except json.JSONDecodeError as e:
             raise CalibrationError(f"{path}:{e.lineno}: not valid JSON: {e.msg}") from None
-        return cls.from_json(d, where=str(path))
+        prof = cls.from_json(d, where=str(path))
+        if prof.pattern_file:
+            from .ir_pattern import EmitterPattern
+
+            prof.pattern = EmitterPattern.load(path.parent / prof.pattern_file)
+        return prof
 
 
 def _json_default(o):
