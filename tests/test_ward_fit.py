@@ -146,6 +146,49 @@ def test_clipped_highlight_with_emitter_noise_is_modelled_not_dropped(pairs):
     assert np.allclose(censored_mean(mu, 1.0, "flat"), np.minimum(mu, 1.0))
 
 
+def test_pattern_divided_samples_fit_unclipped_texels_and_bound_clipped_ones(pairs):
+    """The emitter's pattern divided out (calibration.ir_pattern): an unclipped sample is the BRDF
+    (times 2 % sensor noise), a clipped one is left out of its texel's mean and only counted. The
+    texels' unclipped means are fitted as they are; texels clipped throughout are lower bounds."""
+    wi, wo = pairs
+    rng = np.random.default_rng(9)
+    k, theta, shift = 1.6, 2.8, 3.4
+    Zf = (rng.gamma(k, theta, len(wi)) + shift) / (k * theta + shift)
+    alpha, rho_s, d = 0.06, 0.12, 0.5 / np.pi
+    f = d + rho_s * _ward(alpha, wi, wo, Z)
+    raw = f * Zf                                       # what the sensor sees, before clipping
+    for clip in (3.0 * d, 0.6 * d * 17):               # heavily clipped; clipped only near the peak
+        sat = raw >= clip
+        value = np.minimum(raw, clip) / Zf * rng.normal(1.0, 0.02, len(wi))
+        hb = HBSAB(1, 32)
+        w = (wo[:, 2] * ~sat)                          # clipped samples: weight 0 in the means ...
+        hb.update(0, wi, wo, value, weight=w)
+        hs = HBSAB(1, 32)
+        hs.update(0, wi[sat], wo[sat], value[sat], weight=wo[sat, 2])
+        hb.data[CH_SAT] += hs.data[CH_W]               # ... and counted in WSAT
+        c_div = float(np.mean(value[sat]))
+        fit = fit_ward(hb, emitter=("pattern", k, theta, shift), clip=c_div)
+        assert abs(fit.alpha / alpha - 1) < 0.01, (clip, fit)
+        assert abs(fit.rho_s / rho_s - 1) < 0.02, (clip, fit)
+        assert np.isfinite(fit.alpha_sigma) and not fit.at_bound
+    # a peak clipped throughout (every sample of the central texels): those texels are lower bounds;
+    # met by the right lobe, and a bound far above it pulls the peak up (the residual is live)
+    sat = raw >= 1.05 * d
+    assert np.mean(sat[_ward(alpha, wi, wo, Z) > 5]) == 1.0
+    value = np.minimum(raw, 1.05 * d) / Zf
+    hb = HBSAB(1, 32)
+    hb.update(0, wi, wo, value, weight=wo[:, 2] * ~sat)
+    hs = HBSAB(1, 32)
+    hs.update(0, wi[sat], wo[sat], value[sat], weight=wo[sat, 2])
+    hb.data[CH_SAT] += hs.data[CH_W]
+    c_div = float(np.mean(value[sat]))
+    bounded = fit_ward(hb, emitter=("pattern", k, theta, shift), clip=c_div)
+    assert bounded.n_saturated > 0
+    assert abs(bounded.alpha / alpha - 1) < 0.01 and abs(bounded.rho_s / rho_s - 1) < 0.03, bounded
+    forced = fit_ward(hb, emitter=("pattern", k, theta, shift), clip=30 * c_div)
+    assert forced.rho_s / forced.alpha ** 2 > 1.5 * bounded.rho_s / bounded.alpha ** 2, (forced, bounded)
+
+
 def test_empty_or_degenerate_buffers_raise_clearly():
     with pytest.raises(EstimationError, match="texels have weight"):
         fit_ward(HBSAB(1, 16))
