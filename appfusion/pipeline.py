@@ -37,7 +37,7 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: version of what the stages compute: bump it when a stage's output changes, so that checkpoints
 #: written by an older engine (``out_dir/state``) are recomputed instead of reused (3: 3 mm voxels, the
 #: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods)
-CHECKPOINT_VERSION = 3
+CHECKPOINT_VERSION = 4
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -75,6 +75,9 @@ class ScanConfig:
     diffuse_tau : float or None
         rho_d by the least squares of Eq. 5 with each sample weighted by ``1 / (1 + (S / (tau D))^2)``
         (diffuse-dominated views count most, as Eq. 6's minimum intends); None: unweighted.
+    ir_pattern : bool
+        Calibrate the IR emitter's fixed pattern from the calibration sheet and divide it out of every
+        IR sample (:mod:`calibration.ir_pattern`; beyond the paper's stationary-noise model, §6).
     frame_stride : int
         Use every n-th frame of each pass.
     ball_radius_m : float or None
@@ -108,6 +111,7 @@ class ScanConfig:
     rgb_split: bool = True
     near_field: bool = True
     diffuse_tau: float | None = 0.25
+    ir_pattern: bool = True
     frame_stride: int = 1
     ball_radius_m: float | None = None
     mirror_reflectance: float | None = None
@@ -550,12 +554,17 @@ class ScanRunner:
         self._publish(force=True, stage="ir-calibration", guidance=GUIDANCE["ir-calibration"])
         frames = (f for f in self._frames(start, stop, "ir-calibration") if f.ir is not None)
         t0 = time.perf_counter()
-        self.ir_profile = calibrate_ir(frames, emitter_position=emitter, device=str(meta.get("device", "")))
+        self.ir_profile = calibrate_ir(frames, emitter_position=emitter, device=str(meta.get("device", "")),
+                                       pattern=self.config.ir_pattern)
         self.ir_profile.save(path)
         self._mark_done("ir-calibration", {"seconds": time.perf_counter() - t0})
         p = self.ir_profile
+        pat = p.fit.get("pattern")
         self._note(f"ir-calibration: background {p.background:.1f} counts, gamma {p.gamma:.3f}, "
-                   f"emitter model {p.emitter_model}")
+                   f"emitter model {p.emitter_model}"
+                   + (f", pattern map {pat['coverage']:.0%} of {pat['cells']} cells, held-out spread "
+                      f"{pat['heldout_cv_without']:.0%} -> {pat['heldout_cv']:.0%} (lambda {pat['lambda']:.2f}"
+                      f"{'' if pat['used'] else ', not used'})" if pat else ""))
 
     def _stage_environment(self, start: int, stop: int) -> None:
         """§4.3: track the camera on the markers, fit the ball, accumulate the environment map.
