@@ -261,7 +261,15 @@ class GeometryPass:
             j = self._match_complete(det)
             keep = np.ones(det.n, bool)
         else:
-            keep = dist[np.arange(det.n), j] < max(3 * self.marker_config.radius_m, 0.05)
+            dj = dist[np.arange(det.n), j]
+            keep = dj < max(3 * self.marker_config.radius_m, 0.05)
+            # two detections near one fused circle (an ellipse found twice, a reflection): the nearer
+            # one is that circle. Dropping every anchor of the frame instead let the ICP slide 4 cm
+            # on a symmetric object with four circles in view
+            for c in np.unique(j[keep]):
+                dup = np.flatnonzero(keep & (j == c))
+                if len(dup) > 1:
+                    keep[dup[dup != dup[np.argmin(dj[dup])]]] = False
         if keep.sum() == 0 or len(set(j[keep])) < keep.sum():
             return None
         return det.centers[keep], C[j[keep]]

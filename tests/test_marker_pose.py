@@ -55,3 +55,23 @@ def test_three_circles_not_forming_the_layout_are_refused():
     assert mp._three(det) is None
     two = MarkerDetection(pts[:2], np.full(2, 0.025), np.zeros((2, 2)), np.array([0, 0, -1.0]), 0.7, False, "rgb")
     assert mp.track_detection(two).pose is None
+
+
+def test_a_circle_detected_twice_keeps_the_frame_anchored():
+    """Two detections near one fused circle: the nearer is that circle's anchor, the others stay
+    anchors (dropping every anchor of the frame let the ICP slide 4 cm on the quick bench session)."""
+    from types import SimpleNamespace
+
+    from appfusion.geometry_pass import GeometryPass
+    from appfusion.markers import MarkerDetection
+
+    gp = GeometryPass()
+    C = np.array([[0.15, -0.15, 0.0], [0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0]])
+    gp.tracker.sums[:] = C
+    gp.tracker.counts[:] = 1
+    gp.fusion = SimpleNamespace(predicted_pose=lambda: np.eye(4), lost=False)
+    seen = C[[0, 1, 3, 1]] + np.array([[0.002, 0, 0], [0.0, 0.003, 0], [0, 0, 0.001], [0.006, 0.0, 0.0]])
+    det = MarkerDetection(seen, np.full(4, 0.03), np.zeros((4, 2)), np.array([0, 0, 1.0]), 0.0, False, "ir")
+    src, dst = gp._anchors(det)
+    assert len(src) == 3
+    assert np.allclose(dst, C[[0, 1, 3]]) and np.allclose(src, seen[:3])
