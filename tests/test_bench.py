@@ -427,11 +427,13 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     got = S.run(ctx)
     assert time.perf_counter() - t0 < 60
     assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
-                        *S.SCAN_METRICS.values()}
+                        "scan_ir_pattern_heldout_cv", *S.SCAN_METRICS.values()}
     for k, v in got.items():
         assert v is None or math.isfinite(v), k
     assert 0 < got["relit_rel_rmse"] < 10 and got["scan_chamfer_mm"] > 0 and got["scan_normal_err_deg"] > 0
     e = ctx.extra["scan"]
+    # the emitter pattern map predicts held-out sheet distances far better than the pattern's spread
+    assert got["scan_ir_pattern_heldout_cv"] < 0.5 * e["ir_pattern"]["heldout_cv_without"], e["ir_pattern"]
     assert got["demo_scan_s"] == pytest.approx(e["wall_s"], abs=0.02)
     st = e["stage_s"]
     assert {"ir-calibration", "environment", "geometry", "rgb", "evaluation", "export"} <= set(st)

@@ -20,6 +20,10 @@ the synthetic scanner (``replay.synth``), and reports:
     ``scan_rho_s_rel_err``, ``scan_envmap_median_rel_err``). The per-stage metrics of the same names
     without ``scan_`` stay measured by the stages' own generators; these are the same quantities after
     the whole chain.
+``scan_ir_pattern_heldout_cv``
+    The IR calibration's emitter-pattern map (:mod:`calibration.ir_pattern`): the relative spread of
+    sheet pixels at held-out distances around the map's prediction (the pattern's own spread, ~0.45,
+    is ``extra["scan"]["ir_pattern"]["heldout_cv_without"]``).
 ``skip_lighting_saving``
     "A reused environment map skips the lighting pass" (issue #11): the fraction of the scan's wall
     time saved when the environment map of an earlier scan on the same markers is given
@@ -441,4 +445,11 @@ def run(ctx) -> dict[str, float | None]:
                                     "skip_lighting_saving": saving, "skip_wavelet_saving": wav}
     for k, name in SCAN_METRICS.items():
         got[name] = _number(m.get(k))
+    # the IR calibration's emitter-pattern map (calibration.ir_pattern): the spread of held-out sheet
+    # pixels' intensity over the map's prediction (without the map: the pattern's own, ~0.45)
+    prof_path = out / "state" / "ir_profile.json"
+    pat = json.loads(prof_path.read_text()).get("fit", {}).get("pattern") if prof_path.exists() else None
+    got["scan_ir_pattern_heldout_cv"] = _number(pat.get("heldout_cv")) if pat else None
+    if pat:
+        info["ir_pattern"] = pat
     return got
