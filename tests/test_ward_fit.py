@@ -88,6 +88,25 @@ def test_warm_start_refits_as_data_arrive(pairs):
     assert max(nfev[1:]) <= 10
 
 
+def test_warm_start_never_beats_a_better_grid_start(monkeypatch):
+    """A warm start caught in the previous lobe's basin (the demo bottle: alpha 0.353 kept from an
+    earlier fit where the grid start gives 0.071) loses to the grid start when it fits worse, and
+    wins when it fits better."""
+    import appfusion.ward_fit as W
+
+    def fake(hb, min_weight, diffuse, x0=None, **kw):
+        trapped = x0 is not None and x0[0] > 0.3
+        chi2 = {None: 2.0, True: 9.0, False: 1.5}[None if x0 is None else trapped]
+        alpha = 0.353 if trapped else 0.071
+        return W.WardFit(alpha, 0.01, 0.05, 0.01, 0.1, 0.3, 100, chi2, False)
+
+    monkeypatch.setattr(W, "fit_ward", fake)
+    fitter = WardFitter()
+    fitter.last = W.WardFit(0.35, 0.01, 0.05, 0.01, 0.1, 0.3, 100, 1.0, False)
+    assert fitter.fit(None).alpha == 0.071 and fitter.last.reduced_chi2 == 2.0     # grid start wins
+    assert fitter.fit(None).reduced_chi2 == 1.5                                     # warm start wins
+
+
 def test_alpha_at_its_bounds_is_flagged(pairs):
     wi, wo = pairs
     sel = slice(0, 200_000)
