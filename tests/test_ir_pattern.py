@@ -148,3 +148,21 @@ def test_ir_pass_divides_the_pattern_and_checks_it():
     assert np.allclose(b[CH_WV][unclipped], a[CH_WV][unclipped] / 2.0, rtol=1e-5)   # divided by 2
     with pytest.raises(AppFusionError, match="pattern"):
         ip.add_samples(idx, P[idx], cam, em, raw, pattern=np.zeros(len(idx)))
+
+
+def test_calibrate_command_writes_the_pattern_beside_the_profile(tmp_path, grid_scanner, capsys):
+    from appfusion.cli import main
+    from replay.session import SessionWriter
+
+    sess = tmp_path / "calib"
+    with SessionWriter(sess, device="synthetic-kinect1", intrinsics={"depth": INTR, "ir": INTR},
+                       depth_to_ir=np.eye(4), depth_to_rgb=np.eye(4), emitter_position_m=tuple(E)) as w:
+        w.event(0.0, "pass", "ir-calibration")
+        for f in grid_scanner.frames(dists=(0.5, 0.6, 0.7, 0.8, 0.9, 1.0), n_off=3, per_dist=1):
+            w.write(f)
+    out = tmp_path / "dev" / "profile.json"
+    assert main(["calibrate", "ir", str(sess), "--out", str(out), "--sheet-albedo", "0.9"]) == 0
+    said = capsys.readouterr().out
+    assert "emitter pattern map" in said and "profile.pattern.npz" in said, said
+    p = IRProfile.load(out)
+    assert p.pattern is not None and p.fit["pattern"]["used"]

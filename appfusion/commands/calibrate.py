@@ -57,5 +57,11 @@ def run_ir(args) -> int:
           f"(noise {profile.noise_sigma:.2f}), gamma {profile.gamma:.4f}, gain {profile.gain:.4g}"
           + (f", k {profile.k:.3f}, shift/theta {profile.shift / profile.theta:.3f}"
              if profile.emitter_model == "shifted_gamma" else ""))
+    pat = profile.fit.get("pattern")
+    if pat:
+        print(f"emitter pattern map: {pat['coverage']:.0%} of {pat['cells']} cells, held-out spread "
+              f"{pat['heldout_cv_without']:.0%} -> {pat['heldout_cv']:.0%} (lambda {pat['lambda']:.2f}); "
+              + (f"wrote {profile.pattern_file} beside the profile" if pat["used"] else
+                 "not kept: it does not predict held-out distances well enough"))
     print(f"wrote {args.out}")
     return 0
