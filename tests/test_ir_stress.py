@@ -131,6 +131,34 @@ def test_ward_fit_any_lobe_is_finite_and_bounded(alpha, rho_d, rho_s, n, seed):
 
 
 @SETTINGS
+@given(alpha=st.floats(0.01, 1.0), rho_s=st.floats(0.0, 2.0), clip=st.floats(0.05, 50.0), n=st.integers(50, 3000),
+       clip_level=st.one_of(st.none(), st.floats(1e-6, 1e6)), seed=st.integers(0, 1000))
+def test_pattern_divided_fit_any_clipping_is_finite_and_bounded(alpha, rho_s, clip, n, clip_level, seed):
+    """Emitter pattern divided out (ir-pass §3): clipped samples only counted, texels clipped throughout
+    as lower bounds, any clip level (none, absurdly low or high): a finite fit or a clear refusal."""
+    from appfusion.hbsab import CH_SAT, CH_W
+
+    wi, wo = S.protocol_pairs(n, seed=seed)
+    rng = np.random.default_rng(seed)
+    Zf = (rng.gamma(1.6, 2.8, len(wi)) + 3.4) / (1.6 * 2.8 + 3.4)
+    f = 0.5 / np.pi + rho_s * S._ward(alpha, wi, wo, np.array([0, 0, 1.0]))
+    sat = f * Zf >= clip * 0.5 / np.pi
+    value = np.minimum(f * Zf, clip * 0.5 / np.pi) / Zf
+    hb = HBSAB(1, 16)
+    hb.update(0, wi, wo, value, weight=wo[:, 2] * ~sat)
+    if sat.any():
+        hs = HBSAB(1, 16)
+        hs.update(0, wi[sat], wo[sat], value[sat], weight=wo[sat, 2])
+        hb.data[CH_SAT] += hs.data[CH_W]
+    try:
+        r = fit_ward(hb, emitter=("pattern", 1.6, 0.355, 0.431), clip=clip_level)
+    except EstimationError:
+        return                                               # a clear refusal is fine
+    assert np.all(np.isfinite([r.alpha, r.alpha_sigma, r.rho_s, r.diffuse, r.reduced_chi2]))
+    assert ALPHA_MIN <= r.alpha <= ALPHA_MAX and r.alpha_sigma >= 0 and 0 <= r.rho_s <= RHO_S_MAX * (1 + 1e-9)
+
+
+@SETTINGS
 @given(raw=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=1, max_size=50),
        d=st.floats(-1.0, 5.0), cos_i=st.floats(-1.0, 1.0))
 def test_profile_apply_flags_everything_it_cannot_use(raw, d, cos_i):
