@@ -94,6 +94,7 @@ class IRPass:
         self._leaf_key = self.cut.tree.point_leaf.astype(np.int64) * n2
         self._cos_max = np.float32(np.cos(np.radians(max_angle_deg)))
         self.stats = {"frames": 0, "registered": 0, "used": 0, "saturated": 0, "grazing": 0, "update_s": 0.0}
+        self._n_dot_p: np.ndarray | None = None          # n . p per point (the pattern's surface depth)
 
     # -- frames ----------------------------------------------------------------------------------
     def add_frame(self, ir: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
@@ -160,18 +161,23 @@ class IRPass:
         The pattern map's cells are about one pixel wide: a direction taken from the raw depth
         (Kinect noise ~1.5 mm at 60 cm moves it by ~0.2 cell) picks the neighbouring cell for many
         pixels; the fused surface is ten times smoother. Falls back to the raw depth at grazing rays
-        and where the plane lies more than 1 cm off."""
-        R = T[:3, :3].astype(np.float32)
-        t = T[:3, 3].astype(np.float32)
-        p = self.positions[pts] - t
-        n = self.normals[pts]
-        nc = n @ R                                           # camera-frame normals (R^T n)
-        pc_n = np.einsum("ij,ij->i", p @ R, nc)             # n_c . p_c
-        den = nc[:, 0] * (xc / z) + nc[:, 1] * (yc / z) + nc[:, 2]
+        and where the plane lies more than 1 cm off. In the world frame: the plane ``n . X = n . p``
+        (``n . p`` kept per point), the ray ``C + s R (x/z, y/z, 1)``, so ``z' = (n . p - n . C) / (n . R r)``."""
+        f32 = np.float32
+        if self._n_dot_p is None:
+            self._n_dot_p = np.einsum("ij,ij->i", self.positions, self.normals).astype(f32)
+        R = T[:3, :3].astype(f32)
+        t = T[:3, 3].astype(f32)
+        nx, ny, nz = self._nf[6][pts], self._nf[7][pts], self._nf[8][pts]
+        iz = f32(1.0) / z
+        rx, ry = xc * iz, yc * iz
+        den = (nx * (R[0, 0] * rx + R[0, 1] * ry + R[0, 2]) + ny * (R[1, 0] * rx + R[1, 1] * ry + R[1, 2])
+               + nz * (R[2, 0] * rx + R[2, 1] * ry + R[2, 2]))
+        num = self._n_dot_p[pts] - (nx * t[0] + ny * t[1] + nz * t[2])
         with np.errstate(divide="ignore", invalid="ignore"):
-            zp = pc_n / den
-        bad = ~(np.abs(den) > 0.2) | ~(np.abs(zp - z) < 0.01)
-        return np.where(bad, z, zp).astype(np.float32)
+            zp = num / den
+        bad = ~(np.abs(den) > f32(0.2)) | ~(np.abs(zp - z) < f32(0.01))
+        return np.where(bad, z, zp).astype(f32)
 
     def add(self, frame, emitter_position=None) -> int:
         """Add a :class:`appfusion.frame.Frame` (needs ``ir``, ``depth``, depth intrinsics and ``pose``).

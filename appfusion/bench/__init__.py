@@ -70,6 +70,7 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "relit_rel_rmse": ("fraction", 0.05, "lower"),
     "fps_tracking_fusion": ("fps", 15.0, "higher"),
     "fps_ir_update": ("fps", 30.0, "higher"),
+    "fps_ir_update_pattern": ("fps", 30.0, "higher"),           # the same with the emitter pattern map divided out
     "fps_rgb_update": ("fps", 30.0, "higher"),
     "fps_rgb_update_near_field": ("fps", 30.0, "higher"),       # the same with the support plane's near field
     "wavelet_tables_mb": ("MB", 64.0, "lower"),
