@@ -306,4 +306,5 @@ class IRPass:
     @property
     def nbytes(self) -> int:
         """Memory of the pass's state, bytes (independent of the number of frames added)."""
-        return int(self.cut.nbytes + sum(a.nbytes for a in self._nf) + self._leaf_key.nbytes)
+        return int(self.cut.nbytes + sum(a.nbytes for a in self._nf) + self._leaf_key.nbytes
+                   + (0 if self._n_dot_p is None else self._n_dot_p.nbytes))
