@@ -203,7 +203,9 @@ def test_pattern_divided_samples_fit_unclipped_texels_and_bound_clipped_ones(pai
     c_div = float(np.mean(value[sat]))
     bounded = fit_ward(hb, emitter=("pattern", k, theta, shift), clip=c_div)
     assert bounded.n_saturated > 0
-    assert abs(bounded.alpha / alpha - 1) < 0.01 and abs(bounded.rho_s / rho_s - 1) < 0.03, bounded
+    # 2 %: texels mostly clipped count mainly from below (PATTERN_ONE_SIDED_FRAC); on these exact data
+    # that costs ~1 % (0.0607 against 0.0601), on scans with normal errors it removes +2-9 %
+    assert abs(bounded.alpha / alpha - 1) < 0.02 and abs(bounded.rho_s / rho_s - 1) < 0.03, bounded
     forced = fit_ward(hb, emitter=("pattern", k, theta, shift), clip=30 * c_div)
     assert forced.rho_s / forced.alpha ** 2 > 1.5 * bounded.rho_s / bounded.alpha ** 2, (forced, bounded)
 
