@@ -76,7 +76,7 @@ from scipy.spatial import cKDTree
 from . import octahedral as oc
 from .brdf import ward_retro
 from .errors import AppFusionError, EstimationError
-from .hbsab import CH_W, CH_WV, CH_WV2, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, HBSAB, half_vector_samples
+from .hbsab import CH_SAT, CH_W, CH_WV, CH_WV2, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, HBSAB, half_vector_samples
 from .points import check_oriented_points
 from .ward_fit import RHO_S_MAX, WardFit, WardFitter, one_blas_thread
 
@@ -659,8 +659,8 @@ class BRDFCut:
         reliable, total, coverage = self.node_reliability()
         nodes = self.cut(reliable)
         rel = reliable[nodes]
-        sums = np.add.reduceat(self.leaves.data[[CH_W, CH_WV, CH_WV2]], t.leaf_lo[nodes], axis=1,
-                               dtype=np.float64)
+        sums = self._clustering_sums(np.add.reduceat(self.leaves.data[[CH_W, CH_WV, CH_WV2, CH_SAT]],
+                                                     t.leaf_lo[nodes], axis=1, dtype=np.float64))
         X, Om, _ = _hbsab_features(sums, self.texel_min_weight)
         cols = np.flatnonzero(Om.any(axis=0))                 # texels some node holds
         X, Om = X[:, cols], Om[:, cols]
@@ -751,10 +751,26 @@ class BRDFCut:
             merged += 1
         return labels, clusters, merged
 
+    def _clustering_sums(self, d: np.ndarray) -> np.ndarray:
+        """``W, WV, WV2`` (3, B, T) that k-means compares, from ``W, WV, WV2, WSAT`` sums.
+
+        With the emitter's pattern divided out (``emitter[0] == "pattern"``) the IR pass keeps clipped
+        samples out of the texel means (:mod:`appfusion.ward_fit`), so a node whose highlight clipped
+        throughout has no peak texels and looks matte. For clustering, clipped samples count at the
+        mean clip level instead, as they did before the pattern map: on a two-material scan (seed 1)
+        the means alone gave two clusters of half paint, half label, one of them alpha 0.62.
+        """
+        if isinstance(self.emitter, (tuple, list)) and len(self.emitter) == 4 and self.emitter[0] == "pattern" \
+                and self.clip_n:
+            c = self.clip_sum / self.clip_n
+            W, WV, WV2, SAT = d
+            return np.stack([W + SAT, WV + c * SAT, WV2 + c * c * SAT])
+        return d[:3]
+
     def _refine_leaves(self, leaf_label, cols, C, MC):
         """Move a leaf to another centre when its own HBSAB is closer to it by ``leaf_margin`` in
         chi-square (the cut's nodes straddle material boundaries; their leaves need not)."""
-        d = self.leaves.data[[CH_W, CH_WV, CH_WV2]][:, :, cols].astype(np.float64)
+        d = self._clustering_sums(self.leaves.data[[CH_W, CH_WV, CH_WV2, CH_SAT]][:, :, cols].astype(np.float64))
         XL, OmL, _ = _hbsab_features(d, self.texel_min_weight)
         chi2, nc, _ = _chi2_matrix(XL, OmL, C, MC)
         chi2 = np.where(nc > 0, chi2, np.inf)

@@ -227,3 +227,26 @@ def test_ir_pass_takes_frames():
     assert ip.add(f.replace(ir=None)) == 0
     with pytest.raises(AppFusionError, match="no camera pose"):
         ip.add(f.replace(pose=None))
+
+
+def test_pattern_mode_clusters_with_clipped_samples_at_the_clip_level():
+    """With the emitter pattern divided out, clipped samples are out of the texel means; k-means
+    compares texels with them counted at the mean clip level (a node clipped throughout must not
+    look matte)."""
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(200, 3))
+    N = P / np.linalg.norm(P, axis=1, keepdims=True)
+    cut = BRDFCut(P, N, min_leaf=50, emitter=("pattern", 1.6, 0.355, 0.431))
+    d = np.zeros((4, 2, 3))
+    d[0] = [[2.0, 0.0, 1.0], [1.0, 1.0, 1.0]]          # W (unclipped)
+    d[1] = d[0] * 0.5                                   # WV: unclipped mean 0.5
+    d[2] = d[0] * 0.25
+    d[3] = [[0.0, 4.0, 1.0], [0.0, 0.0, 0.0]]          # WSAT
+    assert np.array_equal(cut._clustering_sums(d), d[:3])          # no clip level yet
+    cut.clip_sum, cut.clip_n = 30.0, 10                 # mean clip level 3
+    W, WV, WV2 = cut._clustering_sums(d)
+    assert W[0].tolist() == [2.0, 4.0, 2.0] and WV[0].tolist() == [1.0, 12.0, 3.5]
+    assert WV2[0, 1] == pytest.approx(36.0) and np.array_equal(W[1], d[0, 1])
+    plain = BRDFCut(P, N, min_leaf=50, emitter=(1.6, 0.355, 0.431))
+    plain.clip_sum, plain.clip_n = 30.0, 10
+    assert np.array_equal(plain._clustering_sums(d), d[:3])
