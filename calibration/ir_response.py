@@ -159,19 +159,29 @@ def sheet_observation(ir: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
                             sheet_directions(Pp, e))
 
 
+def distance_groups(obs: Sequence[SheetObservation], rel_tol: float = 0.02) -> np.ndarray:
+    """Distance group of each observation (int, 0 = nearest): sorted by median distance, an
+    observation within ``rel_tol`` of its group's first (nearest) one joins that group."""
+    gid = np.zeros(len(obs), np.int64)
+    g, first = -1, None
+    for i in sorted(range(len(obs)), key=lambda i: obs[i].median_d):
+        if first is None or obs[i].median_d > first * (1 + rel_tol):
+            g, first = g + 1, obs[i].median_d
+        gid[i] = g
+    return gid
+
+
 def group_by_distance(obs: Sequence[SheetObservation], rel_tol: float = 0.02,
                       max_pixels: int = 60000, seed: int = 0) -> list[SheetObservation]:
     """Merge observations whose median distances are within ``rel_tol``; subsample each group."""
     if not obs:
         return []
     rng = np.random.default_rng(seed)
+    gid = distance_groups(obs, rel_tol)
     order = sorted(range(len(obs)), key=lambda i: obs[i].median_d)
-    groups: list[list[SheetObservation]] = [[obs[order[0]]]]
-    for i in order[1:]:
-        if obs[i].median_d <= groups[-1][0].median_d * (1 + rel_tol):
-            groups[-1].append(obs[i])
-        else:
-            groups.append([obs[i]])
+    groups: list[list[SheetObservation]] = [[] for _ in range(int(gid.max()) + 1)]
+    for i in order:
+        groups[gid[i]].append(obs[i])
     out = []
     for g in groups:
         raw = np.concatenate([o.raw for o in g])
@@ -299,14 +309,7 @@ def pattern_from_sheets(profile: IRProfile, obs: Sequence[SheetObservation], cel
     """
     dirs, z, fold = [], [], []
     low = profile.background + max(3.0 * profile.noise_sigma, 2.0)
-    # cross-validation folds: alternate distance groups (frames within 2 % of each other's distance)
-    order = sorted(range(len(obs)), key=lambda i: obs[i].median_d)
-    group = {}
-    g, d0 = -1, None
-    for i in order:
-        if d0 is None or obs[i].median_d > d0 * 1.02:
-            g, d0 = g + 1, obs[i].median_d
-        group[i] = g
+    group = distance_groups(obs)                       # cross-validation folds: alternate distances
     for i, o in enumerate(obs):
         if o.dirs is None:
             continue
