@@ -541,6 +541,7 @@ class ScanRunner:
     # -- the stages ----------------------------------------------------------------------------------
     def _stage_ir_calibration(self, start: int, stop: int) -> None:
         """§6: background (emitter off), response curve and emitter model (white sheet)."""
+        from calibration.ir_pattern import describe
         from calibration.ir_profile import IRProfile
         from calibration.ir_response import calibrate_ir
 
@@ -562,9 +563,7 @@ class ScanRunner:
         pat = p.fit.get("pattern")
         self._note(f"ir-calibration: background {p.background:.1f} counts, gamma {p.gamma:.3f}, "
                    f"emitter model {p.emitter_model}"
-                   + (f", pattern map {pat['coverage']:.0%} of {pat['cells']} cells, held-out spread "
-                      f"{pat['heldout_cv_without']:.0%} -> {pat['heldout_cv']:.0%} (lambda {pat['lambda']:.2f}"
-                      f"{'' if pat['used'] else ', not used'})" if pat else ""))
+                   + (f", pattern map {describe(pat)}{'' if pat['used'] else ', not used'}" if pat else ""))
 
     def _stage_environment(self, start: int, stop: int) -> None:
         """§4.3: track the camera on the markers, fit the ball, accumulate the environment map.

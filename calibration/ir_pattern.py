@@ -151,6 +151,12 @@ class EmitterPattern:
             raise CalibrationError(f"{path}: {e}") from None
 
 
+def describe(stats: dict) -> str:
+    """One line of a map's diagnostics (:func:`estimate_pattern`'s ``stats``) for logs and the CLI."""
+    return (f"{stats['coverage']:.0%} of {stats['cells']} cells, held-out spread "
+            f"{stats['heldout_cv_without']:.0%} -> {stats['heldout_cv']:.0%} (lambda {stats['lambda']:.2f})")
+
+
 def _cell2(cell) -> tuple[float, float]:
     c = np.asarray(cell, dtype=np.float64).reshape(-1)
     if c.size == 1:

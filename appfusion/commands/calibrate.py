@@ -59,8 +59,9 @@ def run_ir(args) -> int:
              if profile.emitter_model == "shifted_gamma" else ""))
     pat = profile.fit.get("pattern")
     if pat:
-        print(f"emitter pattern map: {pat['coverage']:.0%} of {pat['cells']} cells, held-out spread "
-              f"{pat['heldout_cv_without']:.0%} -> {pat['heldout_cv']:.0%} (lambda {pat['lambda']:.2f}); "
+        from calibration.ir_pattern import describe
+
+        print(f"emitter pattern map: {describe(pat)}; "
               + (f"wrote {profile.pattern_file} beside the profile" if pat["used"] else
                  "not kept: it does not predict held-out distances well enough"))
     print(f"wrote {args.out}")
