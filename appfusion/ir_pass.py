@@ -94,7 +94,9 @@ class IRPass:
         self._leaf_key = self.cut.tree.point_leaf.astype(np.int64) * n2
         self._cos_max = np.float32(np.cos(np.radians(max_angle_deg)))
         self.stats = {"frames": 0, "registered": 0, "used": 0, "saturated": 0, "grazing": 0, "update_s": 0.0}
-        self._n_dot_p: np.ndarray | None = None          # n . p per point (the pattern's surface depth)
+        # n . p per point: the tangent planes of the pattern's surface depth (with a map only)
+        self._n_dot_p = (None if self.pattern is None else
+                         np.einsum("ij,ij->i", self.positions, self.normals).astype(np.float32))
 
     # -- frames ----------------------------------------------------------------------------------
     def add_frame(self, ir: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
@@ -147,13 +149,17 @@ class IRPass:
         emitter_world = T[:3, :3] @ e + t
         raw = ir.ravel()[pix]
         self.stats["registered"] += len(pix)
-        m = None
-        if self.pattern is not None:                         # the emitter's direction to each point
-            zp = self._surface_depth(pts, xc, yc, z, T)
-            ez = zp - np.float32(e[2])
-            r = zp / z
-            m = self.pattern.lookup((xc * r - np.float32(e[0])) / ez, (yc * r - np.float32(e[1])) / ez)
+        m = None if self.pattern is None else self._pattern_values(pts, xc, yc, z, T, e)
         return self._add(pts, X[0], X[1], X[2], raw, t, emitter_world, m)
+
+    def _pattern_values(self, pts, xc, yc, z, T, emitter_position) -> np.ndarray:
+        """The pattern map's value for each registered pixel: its emitter direction from the pixel's
+        ray met with the registered point's tangent plane (:meth:`_surface_depth`), camera axes."""
+        e = np.asarray(emitter_position, dtype=np.float32).reshape(3)
+        zp = self._surface_depth(pts, xc, yc, z, T)
+        ez = zp - e[2]
+        r = zp / z
+        return self.pattern.lookup((xc * r - e[0]) / ez, (yc * r - e[1]) / ez)
 
     def _surface_depth(self, pts, xc, yc, z, T) -> np.ndarray:
         """Depth where each pixel's ray meets the tangent plane of its registered point (metres).
@@ -164,8 +170,6 @@ class IRPass:
         and where the plane lies more than 1 cm off. In the world frame: the plane ``n . X = n . p``
         (``n . p`` kept per point), the ray ``C + s R (x/z, y/z, 1)``, so ``z' = (n . p - n . C) / (n . R r)``."""
         f32 = np.float32
-        if self._n_dot_p is None:
-            self._n_dot_p = np.einsum("ij,ij->i", self.positions, self.normals).astype(f32)
         R = T[:3, :3].astype(f32)
         t = T[:3, 3].astype(f32)
         nx, ny, nz = self._nf[6][pts], self._nf[7][pts], self._nf[8][pts]

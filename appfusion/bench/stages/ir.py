@@ -60,7 +60,7 @@ def update_rate(quick: bool, seed: int) -> dict[str, Any]:
         c0 = time.process_time()
         reg.append(register_pixels(ip.positions, ip.normals, depth, INTR_VGA, T))
         t_reg.append(time.process_time() - c0)
-    pre = []
+    pre, cam = [], []                                     # cam: camera-frame xc, yc, z (the pattern's input)
     K = INTR_VGA
     for (ir, depth), T, (pix, pts) in zip(frames, poses, reg):
         z = depth.ravel()[pix]
@@ -71,6 +71,7 @@ def update_rate(quick: bool, seed: int) -> dict[str, Any]:
         R = T[:3, :3].astype(np.float32)
         X = [R[a, 0] * xc + R[a, 1] * yc + R[a, 2] * z + np.float32(T[a, 3]) for a in range(3)]
         pre.append((pts, X, ir.ravel()[pix], T[:3, 3], T[:3, :3] @ np.asarray(sc.emitter) + T[:3, 3]))
+        cam.append((xc, yc, z))
     for pts, X, raw, C, E in pre[:2]:                     # warm up (page in the leaf HBSABs)
         ip._add(pts, X[0], X[1], X[2], raw, C, E)
     times, cpu = [], []
@@ -93,18 +94,11 @@ def update_rate(quick: bool, seed: int) -> dict[str, Any]:
     prof.pattern = EmitterPattern(rng.uniform(0.5, 1.5, cells).astype(np.float32), np.ones(cells, np.uint16),
                                   1.0 / K.fx, (cells[1] / 2, cells[0] / 2))
     ipp = IRPass(P, N, prof, min_leaf=64)
-    e = np.asarray(sc.emitter, dtype=np.float32)
     cpu_p = []
     for rep in range(2 if quick else 3):
-        for ((pts, X, raw, C, E), (ir, depth), T, (pix, _)) in zip(pre, frames, poses, reg):
+        for (pts, X, raw, C, E), (xc, yc, z), T in zip(pre, cam, poses):
             c0 = time.process_time()
-            z = depth.ravel()[pix]
-            xc = ((pix % K.width).astype(np.float32) - np.float32(K.cx)) / np.float32(K.fx) * z
-            yc = ((pix // K.width).astype(np.float32) - np.float32(K.cy)) / np.float32(K.fy) * z
-            zp = ipp._surface_depth(pts, xc, yc, z, T)
-            r = zp / z
-            m = ipp.pattern.lookup((xc * r - e[0]) / (zp - e[2]), (yc * r - e[1]) / (zp - e[2]))
-            ipp._add(pts, X[0], X[1], X[2], raw, C, E, m)
+            ipp._add(pts, X[0], X[1], X[2], raw, C, E, ipp._pattern_values(pts, xc, yc, z, T, sc.emitter))
             cpu_p.append(time.process_time() - c0)
     t_pat = float(np.median(cpu_p))
     c0 = time.process_time()
