@@ -78,7 +78,7 @@ from .brdf import ward_retro
 from .errors import AppFusionError, EstimationError
 from .hbsab import CH_SAT, CH_W, CH_WV, CH_WV2, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, HBSAB, half_vector_samples
 from .points import check_oriented_points
-from .ward_fit import RHO_S_MAX, WardFit, WardFitter, one_blas_thread
+from .ward_fit import RHO_S_MAX, WardFit, WardFitter, _is_pattern, one_blas_thread
 
 __all__ = ["BRDFTree", "build_tree", "BRDFCut", "CutResult", "ClusterInfo", "highlight_region",
            "kmeans_hbsab"]
@@ -760,8 +760,7 @@ class BRDFCut:
         mean clip level instead, as they did before the pattern map: on a two-material scan (seed 1)
         the means alone gave two clusters of half paint, half label, one of them alpha 0.62.
         """
-        if isinstance(self.emitter, (tuple, list)) and len(self.emitter) == 4 and self.emitter[0] == "pattern" \
-                and self.clip_n:
+        if _is_pattern(self.emitter) and self.clip_n:
             c = self.clip_sum / self.clip_n
             W, WV, WV2, SAT = d
             return np.stack([W + SAT, WV + c * SAT, WV2 + c * c * SAT])

@@ -448,7 +448,7 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
             n_sat = int(len(hsel))
 
     one = np.zeros(len(sel), bool)
-    if pattern and PATTERN_ONE_SIDED_FRAC is not None:
+    if pattern:
         dsel = hb.data[:, buffer, sel].astype(np.float64)
         one = dsel[CH_SAT] > PATTERN_ONE_SIDED_FRAC * (dsel[CH_SAT] + dsel[CH_W])
 
@@ -463,17 +463,17 @@ def _fit_ward(hb, min_weight, diffuse, x0, buffer, q, weighting, max_saturated, 
         return r
 
     def jac(x):
+        dd = x[2] if free_d else d0
         L, dL = lobe(x[0], True)
         cols = [x[1] * dL * inv_s, L * inv_s]
         if free_d:
             cols.append(inv_s)
         J = np.stack(cols, axis=1)
         if one.any():
-            dd = x[2] if free_d else d0
             J[one & ((x[1] * L + dd - v) * inv_s > 0)] *= PATTERN_ONE_SIDED_W
         if len(hsel):
             Lh, dLh = texel_lobe(x[0], n, hsel, h_m, q, derivative=True)
-            act = ((x[1] * Lh + (x[2] if free_d else d0)) < h_lo) * h_inv
+            act = ((x[1] * Lh + dd) < h_lo) * h_inv
             hc = [x[1] * dLh * act, Lh * act] + ([act] if free_d else [])
             J = np.vstack([J, np.stack(hc, axis=1)])
         return J
