@@ -42,6 +42,7 @@ structure is left as multiplicative noise that the HBSAB averages as before.
 from __future__ import annotations
 
 import os
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -143,7 +144,7 @@ class EmitterPattern:
         except FileNotFoundError:
             raise CalibrationError(f"{path}: emitter pattern file not found (it is written beside the IR "
                                    "profile; copy both)") from None
-        except (OSError, ValueError, KeyError) as e:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
             raise CalibrationError(f"{path}: not a valid emitter pattern file: {e}") from None
         try:
             return cls(values, counts, cell, origin)

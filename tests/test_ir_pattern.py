@@ -94,9 +94,13 @@ def test_profile_saves_its_pattern_beside_it(grid_profile, tmp_path):
     (tmp_path / "dev" / "kinect.pattern.npz").unlink()
     with pytest.raises(CalibrationError, match="kinect.pattern.npz.*not found"):
         IRProfile.load(path)
-    (tmp_path / "dev" / "kinect.pattern.npz").write_bytes(b"not a zip")
-    with pytest.raises(CalibrationError, match="not a valid emitter pattern"):
-        IRProfile.load(path)
+    good = (tmp_path / "dev" / "kinect.pattern.npz")
+    grid_profile.save(path)
+    data = good.read_bytes()
+    for bad in (b"not a zip", data[: len(data) // 2]):          # garbage, a truncated copy
+        good.write_bytes(bad)
+        with pytest.raises(CalibrationError, match="kinect.pattern.npz: not a valid emitter pattern"):
+            IRProfile.load(path)
 
 
 def test_lookup_outside_the_map_and_bad_maps():
