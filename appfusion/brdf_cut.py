@@ -601,6 +601,33 @@ class BRDFCut:
             raise AppFusionError(f"BRDF cut: painted point index out of range 0..{len(self.overrides) - 1}")
         self.overrides[idx] = label
 
+    def fit_clusters(self, labels) -> list[ClusterInfo]:
+        """Ward fits (§5.1) of the clusters of a given labelling, e.g. once the colour pass has split
+        off a material the IR showed no highlight of (``appfusion.rgb_pass``): its points then stop
+        diluting the lobe of the cluster they were in. Leaves as in :meth:`result` (merged HBSAB of
+        each label, interior leaves fitted); fresh fitters, so the clusters of :meth:`result` keep
+        their warm starts.
+
+        Parameters
+        ----------
+        labels : (N,) int array, one label >= 0 per point
+
+        Returns
+        -------
+        list of :class:`ClusterInfo`, one per label ``0..labels.max()``.
+        """
+        lab = np.asarray(labels)
+        if lab.shape != (len(self.overrides),) or not np.issubdtype(lab.dtype, np.integer) or (lab.size and lab.min() < 0):
+            raise AppFusionError(f"BRDF cut: fit_clusters needs one label >= 0 per point ({len(self.overrides)}), "
+                                 f"got an array of shape {lab.shape} and dtype {lab.dtype}")
+        kept = self._fitters
+        self._fitters = {}
+        try:
+            with one_blas_thread():
+                return self._clusters(lab.astype(np.int64), int(lab.max()) + 1 if lab.size else 1, True)
+        finally:
+            self._fitters = kept
+
     def clear_labels(self, point_idx=None) -> None:
         """Remove painted labels (all, or of ``point_idx``)."""
         if point_idx is None:

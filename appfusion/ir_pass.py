@@ -303,6 +303,10 @@ class IRPass:
         """Clusters, labels and Ward fits so far (:meth:`appfusion.brdf_cut.BRDFCut.result`)."""
         return self.cut.result(k=k, fit=fit)
 
+    def fit_clusters(self, labels) -> list:
+        """Ward fits of the clusters of given per-point labels (:meth:`BRDFCut.fit_clusters`)."""
+        return self.cut.fit_clusters(labels)
+
     def set_labels(self, point_idx, label: int) -> None:
         """Manual refinement: paint points with a cluster label (persists across re-clustering)."""
         self.cut.set_labels(point_idx, label)
