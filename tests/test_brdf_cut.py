@@ -180,6 +180,27 @@ def test_painted_labels_persist_and_labels_are_stable(two_material_scan):
     assert np.array_equal(ip.result().labels, r1.labels)
 
 
+def test_fit_clusters_of_given_labels(two_material_scan):
+    """The lobes of an outside labelling (the colour pass's split): the true materials' labels fit
+    their own alphas, one label over both materials fits neither; the clusters of result() keep
+    their fitters."""
+    sc, ip, truth, _ = two_material_scan
+    before = {c: f for c, f in ip.cut._fitters.items()}
+    infos = ip.fit_clusters(truth.astype(np.int32))
+    assert [c.label for c in infos] == [0, 1]
+    for c in infos:
+        assert c.fit is not None and abs(c.fit.alpha / sc.materials[c.label].alpha - 1) <= 0.05, c.fit
+    mixed = ip.fit_clusters(np.zeros(len(truth), np.int32))
+    assert len(mixed) == 1
+    a = mixed[0].fit.alpha if mixed[0].fit is not None else None
+    assert a is None or all(abs(a / m.alpha - 1) > 0.05 for m in sc.materials)
+    assert ip.cut._fitters == before
+    with pytest.raises(AppFusionError, match="one label"):
+        ip.fit_clusters(truth[:10])
+    with pytest.raises(AppFusionError, match="one label"):
+        ip.fit_clusters(-np.ones(len(truth), np.int32))
+
+
 def test_state_size_is_independent_of_frames(two_material_scan):
     sc, ip, truth, poses = two_material_scan
     a = IRPass(ip.cut.positions, ip.cut.normals, sc.profile(), min_leaf=32)

@@ -12,7 +12,7 @@ import pytest
 
 from appfusion.errors import AppFusionError, EstimationError
 from appfusion.frame import Intrinsics, invert_pose, make_pose
-from appfusion.fusion import (FusionConfig, TSDFFusion, downsample_depth, kabsch, orthonormalize,
+from appfusion.fusion import (FusionConfig, TSDFFusion, downsample_depth, drop_grazing, kabsch, orthonormalize,
                               rotation_angle_deg, voxel_size_for_box)
 from appfusion.geometry_pass import GeometryConfig, GeometryPass
 from appfusion.geometry_synth import make_sequence
@@ -80,6 +80,40 @@ def test_fused_plane_and_raycast_are_unbiased():
     assert np.sqrt(np.mean((r[ok] - depth[ok]) ** 2)) < 6e-4
     # the raw Open3D ray cast is visibly worse (nearest-voxel marching)
     assert np.sqrt(np.nanmean((rr - depth) ** 2)) > 2 * np.sqrt(np.mean((r[ok] - depth[ok]) ** 2))
+
+
+def test_drop_grazing_and_the_surface_volume():
+    """Pixels seen beyond the incidence limit, and those at a depth jump, stay out of the surface
+    volume (the extracted mesh) while the tracking volume fuses them."""
+    K = K320
+    assert np.isfinite(drop_grazing(_plane_depth(K, 0.7, 25.0), K, 70.0)[1:-1, 1:-1]).all()
+    tilt = np.deg2rad(75.0)
+    steep = _plane_depth(K, 0.7, 75.0)
+    with np.errstate(invalid="ignore"):
+        steep[~(steep > 0.2) | ~(steep < 1.5)] = np.nan
+    rays = K.rays() / np.linalg.norm(K.rays(), axis=-1, keepdims=True)
+    inc = np.degrees(np.arccos(np.abs(rays @ np.array([0.0, np.sin(tilt), -np.cos(tilt)]))))
+    kept = np.isfinite(drop_grazing(steep, K, 70.0))
+    ok = np.isfinite(steep)
+    ok[:2], ok[-2:], ok[:, :2], ok[:, -2:] = False, False, False, False
+    assert (inc[ok] > 72).sum() > 1000 and (inc[ok] < 68).sum() > 1000
+    assert not kept[ok & (inc > 72)].any() and kept[ok & (inc < 68)].all()
+    step = _plane_depth(K, 0.7, 0.0)
+    step[:, 160:] += 0.05                                # a 5 cm step: the pixels beside it dropped
+    kept = np.isfinite(drop_grazing(step, K, 70.0))
+    assert not kept[10:-10, 158:162].any() and kept[10:-10, 150:158].all() and kept[10:-10, 162:170].all()
+    steep = np.where(inc > 72, steep, np.nan).astype(np.float32)        # only grazing pixels left
+    fu = TSDFFusion(K, FusionConfig())
+    assert fu.config.surface_max_incidence_deg == 70.0 and fu.surface_vbg is not None
+    for _ in range(3):
+        fu.integrate(steep, np.eye(4))
+    assert fu.n_blocks > 0
+    assert len(fu.extract_mesh(weight_threshold=1.0).vertices) == 0       # nothing the surface trusts
+    one = TSDFFusion(K, FusionConfig(surface_max_incidence_deg=None))
+    assert one.surface_vbg is None
+    for _ in range(3):
+        one.integrate(steep, np.eye(4))
+    assert len(one.extract_mesh(weight_threshold=1.0).vertices) > 100
 
 
 def test_all_blocks_raycast_uses_only_active_blocks():
