@@ -137,11 +137,12 @@ def test_two_materials_labels_and_alphas(two_material_scan):
 
 
 def test_a_needle_fit_is_no_material_of_its_own(two_material_scan):
-    """Automatic k: a cluster whose Ward fit ran to the rho_s bound (a needle lobe: clipped peaks
-    that any sharp enough lobe meets) joins the largest properly fitted cluster; real lobes stay."""
+    """Automatic k: a cluster whose Ward fit ran to the rho_s or the lower alpha bound (a needle lobe:
+    clipped peaks that any sharp enough lobe meets) joins the largest properly fitted cluster; real
+    lobes stay."""
     import dataclasses
 
-    from appfusion.ward_fit import RHO_S_MAX
+    from appfusion.ward_fit import ALPHA_MIN, RHO_S_MAX
 
     sc, ip, truth, _ = two_material_scan
     res = ip.result()
@@ -151,6 +152,13 @@ def test_a_needle_fit_is_no_material_of_its_own(two_material_scan):
     small = min(clusters, key=lambda c: c.area)
     clusters[small.label] = dataclasses.replace(
         small, fit=dataclasses.replace(small.fit, alpha=0.016, rho_s=RHO_S_MAX, at_bound=True))
+    labels, merged_clusters, merged = cut._merge_alike(res.labels.copy(), clusters)
+    assert merged == 1 and len(merged_clusters) == 1 and np.all(labels == 0)
+    # the other needle bound: alpha at ALPHA_MIN with an ordinary rho_s (a mixed boundary cluster)
+    clusters = list(res.clusters)
+    clusters[small.label] = dataclasses.replace(
+        small, fit=dataclasses.replace(small.fit, alpha=ALPHA_MIN, rho_s=0.3, at_bound=True))
+    cut._fitters, cut._prev_labels = {}, None
     labels, merged_clusters, merged = cut._merge_alike(res.labels.copy(), clusters)
     assert merged == 1 and len(merged_clusters) == 1 and np.all(labels == 0)
     # two proper, different lobes are left apart
