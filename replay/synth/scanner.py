@@ -433,7 +433,14 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
             scenes[key].save_lighting(lcache)
         spec = {"scene": scene, "detail": detail, "seed": seed, "quality": quality.to_json(), "size": (w, h),
                 "passes": passes, "base_exposure": base_exposure, "cache_dir": str(lcache)}
-        pool = ProcessPoolExecutor(max_workers=int(workers), initializer=_worker_init, initargs=(spec,))
+        # spawned, not forked: a child forked from a process whose Open3D (Embree / TBB) threads already
+        # ran inherits their locks held; `test_same_seed_same_bytes_also_with_two_worker_processes` hung
+        # for 18 minutes in a forked worker's first ray cast once the suite's order put a ray-casting
+        # test before it in the same pytest worker
+        import multiprocessing
+
+        pool = ProcessPoolExecutor(max_workers=int(workers), initializer=_worker_init, initargs=(spec,),
+                                   mp_context=multiprocessing.get_context("spawn"))
         results = pool.map(_worker_frame, tasks, chunksize=2)
     else:
         results = (job.render(pno, i) for pno, i in tasks)
