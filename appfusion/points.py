@@ -28,6 +28,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .brdf import local_frame
 from .errors import AppFusionError, EstimationError
 from .frame import Intrinsics
 
@@ -512,10 +513,8 @@ def _local_linear_value(X: np.ndarray, w: np.ndarray, Nj: np.ndarray, Ncur: np.n
     plain weighted sums, kept where the 3 x 3 normal equations are ill-conditioned (neighbours on a
     line, one neighbour) or the fitted value turns away from the average.
     """
-    helper = np.where(np.abs(Ncur[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(Ncur, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(Ncur, t1)
+    F = local_frame(Ncur)                                   # rows t, b, n; the fit's value at the point
+    t1, t2 = F[:, 0], F[:, 1]                               # does not depend on the tangent basis
     A = np.stack([np.ones(w.shape), np.einsum("nkc,nc->nk", X, t1), np.einsum("nkc,nc->nk", X, t2)], -1)
     M = np.einsum("nk,nki,nkj->nij", w, A, A)
     R = np.einsum("nk,nki,nkc->nic", w, A, Nj)
