@@ -864,7 +864,7 @@ class ScanRunner:
             f = c.fit
             if f is not None and not f.at_bound and np.isfinite(f.alpha):
                 alpha[c.label] = f.alpha
-                sigma[c.label] = f.alpha_sigma if f.alpha_sigma is not None else np.nan
+                sigma[c.label] = f.alpha_sigma
                 fitted.append(f"cluster {c.label} alpha {f.alpha:.3f}")
         if fitted:
             self._note("rgb: IR lobes refitted to the colour pass's clusters: " + ", ".join(fitted))
