@@ -585,7 +585,7 @@ class ScanRunner:
             self._note("environment: reusing the checkpointed environment map")
             return
         cfg = self.config
-        geo = _Geometry(self.source.meta, self.config)
+        geo = _Geometry(self.source.meta, self.config, surface=False)      # tracks only
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}
         extra = meta.get("extra") or {}
         ball = extra.get("mirror_ball") or {}
@@ -1344,15 +1344,19 @@ class _Geometry:
     before that have no usable pose for the appearance passes and are skipped by them).
     """
 
-    def __init__(self, meta: dict, config: ScanConfig):
+    def __init__(self, meta: dict, config: ScanConfig, surface: bool = True):
+        """``surface=False``: tracking only (the environment pass), no surface volume to feed
+        (``FusionConfig.surface_max_incidence_deg``): its mesh is never extracted."""
+        from .fusion import FusionConfig
         from .geometry_pass import GeometryConfig, GeometryPass
 
         gcfg = GeometryConfig(n_points=config.n_points, box_height=config.box_height_m)
+        fc = {} if surface else {"surface_max_incidence_deg": None}
         if config.voxel_m:
-            from .fusion import FusionConfig
-
-            gcfg.fusion = FusionConfig(voxel_size=config.voxel_m)
+            fc["voxel_size"] = config.voxel_m
             gcfg.fixed_voxel = True
+        if fc:
+            gcfg.fusion = FusionConfig(**fc)
         self.gp = GeometryPass(gcfg, meta=meta)
 
     @property
