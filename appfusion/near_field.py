@@ -27,7 +27,8 @@ The RGB pass (§5.3) adds the resulting corrections to Eq. 5's terms:
 
 ``dD`` once per point (octahedral quadrature of the paper plus exact small-patch integration of the
 circles); ``dS`` per sample by stratified importance sampling of the Ward lobe (only for samples whose
-lobe reaches below the horizon). Visibility from the point (the object occluding its own view of the
+lobe reaches below the horizon), plus uniform samples of the white circles a broad lobe may reach,
+combined with the lobe's by multiple importance sampling. Visibility from the point (the object occluding its own view of the
 plane) is ignored, as everywhere in the paper.
 """
 
@@ -38,7 +39,7 @@ import math
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import local_frame, sample_ward, ward
+from .brdf import COS_EPS, local_frame, sample_ward, ward
 from .errors import AppFusionError
 
 __all__ = ["SupportPlaneLight", "paper_radiance_from_env"]
@@ -126,6 +127,10 @@ class SupportPlaneLight:
         Side of the octahedral quadrature square of ``dD`` (lower hemisphere, ``n_quad^2`` directions).
     """
 
+    #: a lobe (2 atan(alpha), radians) narrower than this times a circle's angular radius keeps lobe
+    #: sampling alone for it; broader ones add area samples of the disc (:meth:`delta_S`)
+    MIS_LOBE_TO_DISC = 1.5
+
     def __init__(self, env, centres, radii, paper, circle_radiance=1.0, extent_m: float = 0.45,
                  n_quad: int = 16):
         env = np.asarray(env)
@@ -149,6 +154,8 @@ class SupportPlaneLight:
         self._om_q = oc.sphere_solid_angles(self.n_quad)[1].reshape(-1)
         self.shadow = None            # (nodes, grid) of the object's shadow factor on the plane
         self._circle_pts = self._circle_patches()
+        self._env_lower4 = self._four_texels(self.env[1])                           # (12, N^2) float32
+        self._circle_cells = self._circle_grid()
 
     @classmethod
     def from_scan(cls, env, marker_centres, marker_radii, ball_centre, ball_radius=None, **kw) -> "SupportPlaneLight":
@@ -248,6 +255,29 @@ class SupportPlaneLight:
                 area.append(np.full(n_s, np.pi * (b * b - a * a) / n_s))
         return np.concatenate(pts), np.concatenate(area)
 
+    @staticmethod
+    def _four_texels(face: np.ndarray) -> np.ndarray:
+        """(12, N^2) table of a face (N, N, 3): for texel (y, x), rows 3c..3c+2 hold the RGB of its
+        bilinear corner c = (y, x), (y, x + 1), (y + 1, x), (y + 1, x + 1), clamped to the face (one
+        gather per bilinear look-up)."""
+        N = face.shape[0]
+        i = np.arange(N)
+        i1 = np.minimum(i + 1, N - 1)
+        c = [face[np.ix_(ys, xs)] for ys in (i, i1) for xs in (i, i1)]
+        return np.ascontiguousarray(np.stack(c).reshape(4, N * N, 3).transpose(0, 2, 1).reshape(12, N * N),
+                                    dtype=np.float32)
+
+    def _circle_grid(self) -> tuple[float, int, np.ndarray]:
+        """Cell side ``h`` (m), cells per side ``m`` and flags (m * m,) of the cells over
+        ``[-extent, extent]^2`` that may overlap a circle (centre within radius + half a cell diagonal)."""
+        m = int(min(max(2 * self.extent / (0.5 * self.radii.min()), 1), 512))
+        h = 2 * self.extent / m
+        c = (np.arange(m) + 0.5) * h - self.extent
+        gx, gy = np.meshgrid(c, c, indexing="ij")
+        xy = np.stack([gx.ravel(), gy.ravel()], 1)
+        flags = _circle_mask(xy, self.centres, self.radii + 0.75 * h)
+        return h, m, flags
+
     def delta_D(self, points: np.ndarray, normals: np.ndarray, chunk: int = 2048) -> np.ndarray:
         """``dD`` (P, 3) of points (P, 3) with unit normals (P, 3), white units (module notes).
 
@@ -287,7 +317,8 @@ class SupportPlaneLight:
         return out
 
     def delta_S(self, points: np.ndarray, normals: np.ndarray, wo: np.ndarray, alpha, n_samples: int = 16,
-                seed: int = 0, n_samples_circle: int = 16) -> np.ndarray:
+                seed: int = 0, n_samples_circle: int = 16, circle_samples: int = 4,
+                reference: bool = False) -> np.ndarray:
         """``dS`` (M, 3): the lobe's view of the plane minus its view of the map's lower hemisphere.
 
         Parameters
@@ -300,14 +331,22 @@ class SupportPlaneLight:
             Lobe samples per sample: a stratified sqrt(n) x sqrt(n) pattern of Ward half-vector
             sampling, rotated at random per sample (unbiased; the noise averages over a point's
             views and a cluster's points like the sensor's).
+        circle_samples : int
+            Area samples of each white circle a lobe may reach (the mirror ray within the circle's
+            angular radius plus three lobe widths of its centre), combined with the lobe samples by
+            multiple importance sampling (balance heuristic, Veach 1997 §9.2). A circle is 20 times
+            brighter than the paper and a few degrees wide: 4 lobe samples hit it with one sample or
+            none, and that noise in S diluted the colour pass's regression of L on S (a glossy
+            sphere's equator read a specular slope of 0.09 for 0.28). Uniform points of the disc see
+            it every time; the combination is unbiased for any count, and with 4 lobe + 4 area samples
+            its noise is below that of the earlier 16 lobe samples (docs/rgb-pass.md §5c).
         n_samples_circle : int
-            Lobe samples for the samples whose lobe may reach a white circle (the mirror ray within
-            the circle's angular radius plus three lobe widths of its centre). A circle is 20 times
-            brighter than the paper and a few degrees wide: with 4 samples a lobe hit it with one
-            sample or none, and that noise in S diluted the colour pass's regression of L on S (a
-            glossy sphere's equator read a specular slope of 0.09 for 0.28 and half of it was split
-            off as matte; 0.19 with 16 samples, 0.25 with 64, at 153 and 254 ms per demo frame
-            against 127 with 4).
+            With ``circle_samples=0``: the lobe samples of the lobes that may reach a circle instead
+            (the earlier scheme; 16 gave that equator 0.19, 64 gave 0.25).
+        reference : bool
+            Run the original per-ray implementation (:meth:`_delta_S_mc_reference`, the
+            ``circle_samples=0`` scheme). With ``circle_samples=0`` the fast path draws the same random
+            numbers and agrees with it to float32 rounding (tests).
 
         Only samples whose mirror direction lies within ~4 lobe widths of the horizon or below get a
         correction; the others are 0.
@@ -319,31 +358,281 @@ class SupportPlaneLight:
         out = np.zeros((len(p), 3))
         if len(p) == 0:
             return out
-        cos_o = np.sum(n * v, axis=1)
-        r = 2 * cos_o[:, None] * n - v
-        width = np.minimum(4 * np.arctan(al), np.pi / 2)
-        reach = np.sin(width)
-        i = np.flatnonzero((r[:, 2] < reach) & (cos_o > 1e-3) & (p[:, 2] > 0))
+        cos_o = n[:, 0] * v[:, 0] + n[:, 1] * v[:, 1] + n[:, 2] * v[:, 2]
+        rz = 2 * cos_o * n[:, 2] - v[:, 2]                                   # mirror ray's z
+        atan_a = np.arctan(al.astype(np.float32))
+        reach = np.sin(np.minimum(4 * atan_a, np.float32(np.pi / 2)))
+        i = np.flatnonzero((rz < reach) & (cos_o > 1e-3) & (p[:, 2] > 0))
         if len(i) == 0:
             return out
         # which lobes may see a circle: the mirror ray within the circle's angular radius plus three
         # lobe widths of the direction to its centre
-        to_c = self.centres[None, :, :] - p[i, None, :]                      # (m, C, 3)
-        dist = np.linalg.norm(to_c, axis=-1)
-        cos_c = np.einsum("mci,mi->mc", to_c, r[i]) / np.maximum(dist, 1e-9)
-        ang = np.arccos(np.clip(cos_c, -1.0, 1.0))
-        near = np.any(ang <= self.radii[None, :] / np.maximum(dist, 1e-9) + 3.0 * np.arctan(al[i])[:, None] + 0.02,
-                      axis=1)
+        f32 = np.float32
+        px, py, pz = (p[i, c].astype(f32) for c in range(3))
+        co2 = 2 * cos_o[i]
+        rx, ry, rz = ((co2 * n[i, c] - v[i, c]).astype(f32) for c in range(3))     # mirror rays (m,)
+        w3 = 3 * atan_a[i] + f32(0.02)
+        near_c = np.empty((len(self.radii), len(i)), bool)                  # (C, m)
+        sharp_c = np.empty((len(self.radii), len(i)), bool)                 # lobe narrower than the disc
+        lobe = 2 * atan_a[i]                                                 # ~ the lobe's angular radius
+        for c, (cen, rad) in enumerate(zip(self.centres.astype(f32), self.radii.astype(f32))):
+            dx, dy, dz = cen[0] - px, cen[1] - py, cen[2] - pz
+            dist = np.maximum(np.sqrt(dx * dx + dy * dy + dz * dz), f32(1e-9))
+            cos_c = (dx * rx + dy * ry + dz * rz) / dist
+            near_c[c] = np.arccos(np.clip(cos_c, -1.0, 1.0)) <= rad / dist + w3
+            sharp_c[c] = lobe < self.MIS_LOBE_TO_DISC * rad / dist
         rng = np.random.default_rng(seed)
-        self._delta_S_mc(p, n, v, al, i[~near], n_samples, rng, out)
-        self._delta_S_mc(p, n, v, al, i[near], max(n_samples, n_samples_circle), rng, out)
+        if not (reference or circle_samples <= 0):
+            # lobes narrower than a disc they may reach keep the lobe samples alone (n_samples_circle);
+            # the others sample their discs too
+            sharp = (near_c & sharp_c).any(axis=0)
+            near_c[:, sharp] = False
+            self._delta_S_mc(p, n, v, al, i[sharp], max(n_samples, n_samples_circle), rng, out)
+            i = i[~sharp]
+            near_c = near_c[:, ~sharp]
+        if reference or circle_samples <= 0:
+            near = near_c.any(axis=0)
+            self._delta_S_mc(p, n, v, al, i[~near], n_samples, rng, out, reference)
+            self._delta_S_mc(p, n, v, al, i[near], max(n_samples, n_samples_circle), rng, out, reference)
+            return out
+        k = max(int(round(math.sqrt(n_samples))), 1)
+        k2 = max(int(round(math.sqrt(circle_samples))), 1)
+        bits = np.zeros(len(i), np.int64)                                     # (m,) circles with area samples
+        for c in range(len(near_c)):
+            bits |= near_c[c].astype(np.int64) << c
+        self._delta_S_mc(p, n, v, al, i, k * k, rng, out, mis=(bits, k2 * k2))
+        pc, ps = np.nonzero(near_c)                                           # (circle, sample) pairs
+        if len(ps):
+            s = i[ps]
+            ru, rw = self._rotations(rng, len(s), k2 * k2)
+            dS = self._circle_mc(*(np.take(x, s, axis=0) for x in (p, n, v, al)), pc, k2, ru, rw, k * k)
+            for c in range(3):
+                out[:, c] += np.bincount(s, weights=dS[:, c], minlength=len(p))
         return out
 
-    def _delta_S_mc(self, p, n, v, al, idx, n_samples, rng, out) -> None:
-        """Stratified Ward lobe sampling of ``dS`` for the samples ``idx`` (written into ``out``)."""
+    @staticmethod
+    def _rotations(rng, count: int, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
+        """The per-sample random shifts (count,) of the stratified pattern: ``r1`` (of the ``tan^2``
+        strata, scaled by 1/k) and ``r2`` (of the azimuth), drawn in chunks of ~16k lobe rays."""
+        r1, r2 = np.empty(count), np.empty(count)
+        chunk = max(4096 * 4 // n_rays, 64)
+        for s in range(0, count, chunk):
+            m = min(chunk, count - s)
+            r1[s:s + m] = rng.random(m)
+            r2[s:s + m] = rng.random(m)
+        return r1, r2
+
+    def _delta_S_mc(self, p, n, v, al, idx, n_samples, rng, out, reference: bool = False, mis=None) -> None:
+        """Stratified Ward lobe sampling of ``dS`` for the samples ``idx`` (written into ``out``).
+
+        ``k = round(sqrt(n_samples))``; sample ``m`` takes the ``k x k`` half vectors
+        ``u1 = (i + 0.5 + r1_m) / k mod 1``, ``u2 = (j + 0.5) / k + r2_m mod 1`` of Walter's Ward
+        sampling (``tan^2 theta_h = -alpha^2 log u1``, ``phi_h = 2 pi u2``), reflects ``w_o`` about them
+        and averages ``(L_plane - L_env)(w_i) f cos_i / pdf`` (white units). ``reference=True`` runs the
+        original per-ray implementation (:meth:`_delta_S_mc_reference`) on the same shifts. ``mis``:
+        ``(bits, n2)``, per sample of ``idx`` the circles (bit c) that also get ``n2`` area samples
+        (:meth:`_circle_mc`); a ray that hits one of them weighs the circle's excess over the paper by
+        the balance heuristic ``k^2 p_lobe / (k^2 p_lobe + n2 p_area)``.
+        """
         if len(idx) == 0:
             return
         k = max(int(round(math.sqrt(n_samples))), 1)
+        r1, r2 = self._rotations(rng, len(idx), k * k)
+        if reference:
+            self._delta_S_mc_reference(p, n, v, al, idx, k, r1, r2, out)
+            return
+        chunk = max(32768 // (k * k), 64)                                     # ~32k lobe rays at a time
+        P, N, V, A = (np.take(x, idx, axis=0) for x in (p, n, v, al))
+        for s in range(0, len(idx), chunk):
+            c = slice(s, s + chunk)
+            mj = None if mis is None else (mis[0][c], mis[1])
+            out[idx[c]] = self._lobe_mc(P[c], N[c], V[c], A[c], k, r1[c], r2[c], mj)
+
+    def _lobe_mc(self, p, n, v, a, k, r1, r2, mis=None) -> np.ndarray:
+        """The ``k x k`` stratified lobe estimate of ``dS`` (m, 3), white units, for samples with points
+        ``p`` (m, 3, m above the plane), unit normals ``n`` and views ``v`` (m, 3, ``n.v > 1e-3``),
+        Ward ``a`` (m,) and pattern shifts ``r1``, ``r2`` (m,); ``mis`` as in :meth:`_delta_S_mc`.
+
+        The estimator of :meth:`_delta_S_mc_reference`, per ray without the BRDF calls: ``log``,
+        ``sqrt`` run on a sample's k distinct ``u1`` and ``cos``/``sin`` on its k azimuths; ray (i, j)'s
+        half vector is ``h = sin(theta_i) e_j + cos(theta_i) n`` with ``e_j`` the world azimuth vector,
+        so ``w_o.h``, ``cos_i = 2 (w_o.h) cos(theta_h) - cos_o`` and ``w_i.z`` are two products each; the
+        weight ``f cos_i / pdf`` of Walter's half-vector sampling is ``cos_h^3 (w_o.h) sqrt(cos_i /
+        cos_o)`` (the lobe's exponential cancels); only rays with ``cos_i > 0`` that go down
+        (``w_i.z < -1e-6``) meet the plane and the map. Arrays are (k, m), (k, k, m) and (C, Q): the
+        sample (or ray) index last, so numpy's inner loops run over it; float32 per ray.
+        """
+        m = len(p)
+        K = k * k
+        f32 = np.float32
+        g = (np.arange(k) + 0.5)[:, None] / k
+        u1 = g + r1[None, :] / k                                                 # (k, m), in [0, 2)
+        u1 -= u1 >= 1.0                                                          # mod 1 (exact)
+        tan2 = -(a * a)[None, :] * np.log(np.maximum(u1, 1e-12))
+        ch = 1.0 / np.sqrt(1.0 + tan2)                                          # cos theta_h (k, m)
+        sh = np.sqrt(np.maximum(1.0 - ch * ch, 0.0))
+        # cos / sin of phi_j = 2 pi (j + 0.5) / k + 2 pi r2 by the angle sum (one cos, sin per sample)
+        c0, s0 = np.cos(2 * np.pi * r2), np.sin(2 * np.pi * r2)
+        cg, sg_ = np.cos(2 * np.pi * g), np.sin(2 * np.pi * g)                   # (k, 1)
+        cp, sp = cg * c0 - sg_ * s0, sg_ * c0 + cg * s0                           # (k, m)
+        # the normal's tangent frame (t, b) of brdf.local_frame (Duff et al. 2017), componentwise (m,)
+        nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+        vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+        sg = np.where(nz >= 0, 1.0, -1.0)
+        aa = -1.0 / (sg + nz)
+        bb = nx * ny * aa
+        tx, ty, tz = 1 + sg * nx * nx * aa, sg * bb, -sg * nx
+        bx, by, bz = bb, sg + ny * ny * aa, -ny
+        co = nx * vx + ny * vy + nz * vz
+        # azimuth vectors e_j = cos(phi_j) t + sin(phi_j) b, world, per component (k, m)
+        ex = (cp * tx + sp * bx).astype(f32)
+        ey = (cp * ty + sp * by).astype(f32)
+        ez = (cp * tz + sp * bz).astype(f32)
+        ev = (cp * (tx * vx + ty * vy + tz * vz) + sp * (bx * vx + by * vy + bz * vz)).astype(f32)   # e_j . w_o
+        sh32, ch32, co32 = sh.astype(f32), ch.astype(f32), co.astype(f32)
+        # ray (i, j): axis 0 = i (theta_h), axis 1 = j (azimuth), axis 2 = sample
+        oh = sh32[:, None, :] * ev[None, :, :]
+        oh += (ch32 * co32)[:, None, :]                                          # w_o . h (k, k, m)
+        ci = oh * (2 * ch32)[:, None, :]
+        ci -= co32                                                              # w_i . n
+        wz = sh32[:, None, :] * ez[None, :, :]
+        wz += (ch32 * nz.astype(f32))[:, None, :]                                # h.z, world
+        wz *= 2 * oh
+        wz -= vz.astype(f32)                                                    # w_i.z, world
+        q = np.flatnonzero((ci > COS_EPS) & (wz < -1e-6))
+        if len(q) == 0:
+            return np.zeros((m, 3))
+        smp = q % m
+        ij = q // m
+        si = (ij // k) * m + smp                                                  # (i, sample)
+        sj = (ij % k) * m + smp                                                   # (j, sample)
+        oh, ci, wz = oh.reshape(-1).take(q), ci.reshape(-1).take(q), wz.reshape(-1).take(q)
+        shq, chq = sh32.reshape(-1).take(si), ch32.reshape(-1).take(si)
+        per = np.take(np.stack([p[:, 0], p[:, 1], p[:, 2], vx, vy, nx, ny, co]).astype(f32), smp, axis=1)  # (8, Q)
+        wx = 2 * oh * (shq * ex.reshape(-1).take(sj) + chq * per[5]) - per[3]
+        wy = 2 * oh * (shq * ey.reshape(-1).take(sj) + chq * per[6]) - per[4]
+        wgt = chq * chq * chq * oh * np.sqrt(ci / per[7])
+        dL, hit, hc, exc, t = self._delta_radiance_down(per[0], per[1], per[2], wx, wy, wz)   # (3, Q), hits
+        if mis is not None and len(hit):
+            bits, n2 = mis
+            hs = smp[hit]
+            use = (bits[hs] >> hc) & 1 == 1
+            if use.any():
+                hit, hs, hc, exc = hit[use], hs[use], hc[use], exc[:, use]
+                ah = a[hs]
+                # Walter's pdf of the ray; its exp(-tan^2 theta_h / a^2) is u1
+                p_lobe = u1.reshape(-1)[si[hit]] / (4 * np.pi * ah * ah * chq[hit].astype(np.float64) ** 3
+                                                    * oh[hit].astype(np.float64))
+                p_area = t[hit].astype(np.float64) ** 3 / (np.pi * self.radii[hc] ** 2 * p[hs, 2])
+                w_lobe = (K * p_lobe) ** 2 / ((K * p_lobe) ** 2 + (n2 * p_area) ** 2)    # power heuristic
+                dL[:, hit] -= ((1.0 - w_lobe) * exc).astype(f32)
+        out = np.empty((m, 3))
+        for c in range(3):
+            out[:, c] = np.bincount(smp, weights=wgt * dL[c], minlength=m)
+        return out / K
+
+    def _circle_mc(self, p, n, v, a, c, k2, ru, rw, n_lobe) -> np.ndarray:
+        """Area samples of circle ``c`` (P,) for samples (points ``p``, normals ``n``, views ``v``:
+        (P, 3); Ward ``a`` (P,)): the circle's excess over the paper, ``int_disc (L_circle - L_paper)
+        shadow f cos_i cos_c / r^2 dA`` (white units, (P, 3)), by ``k2 x k2`` stratified uniform points
+        of the disc (``rho = R sqrt(u)``, ``psi = 2 pi w``; ``u`` shifted by ``ru / k2``, ``w`` by ``rw``),
+        each weighed against the ``n_lobe`` lobe samples by the balance heuristic ``g / (n_lobe p_lobe +
+        k2^2 p_area)``: ``p_area = r^3 / (A p_z)`` per steradian, ``p_lobe`` Walter's Ward pdf. Points of
+        the disc beyond ``extent_m`` add nothing (the map is kept there). Arrays (k2, k2, P)."""
+        P = len(p)
+        n2 = k2 * k2
+        g = (np.arange(k2) + 0.5)[:, None] / k2
+        uu = g + ru[None, :] / k2
+        uu -= uu >= 1.0
+        ww = g + rw[None, :]
+        ww -= ww >= 1.0
+        R = self.radii[c]
+        rho = R * np.sqrt(uu)                                                   # (k2, P)
+        psi = 2 * np.pi * ww
+        x = (self.centres[c, 0] + rho[:, None, :] * np.cos(psi)[None, :, :]).reshape(n2, P)
+        y = (self.centres[c, 1] + rho[:, None, :] * np.sin(psi)[None, :, :]).reshape(n2, P)
+        nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+        vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+        dx, dy, dz = x - p[:, 0], y - p[:, 1], -p[:, 2]
+        r = np.sqrt(dx * dx + dy * dy + dz * dz)
+        wx, wy, wz = dx / r, dy / r, dz / r
+        ci = nx * wx + ny * wy + nz * wz
+        co = nx * vx + ny * vy + nz * vz
+        hx, hy, hz = wx + vx, wy + vy, wz + vz
+        hn = np.sqrt(hx * hx + hy * hy + hz * hz)
+        ch = (nx * hx + ny * hy + nz * hz) / hn
+        oh = (vx * hx + vy * hy + vz * hz) / hn
+        ok = (ci > COS_EPS) & (ch > COS_EPS) & (oh > 0) & (x * x + y * y <= self.extent ** 2)
+        chs = np.where(ok, ch, 1.0)
+        a2 = a * a
+        E = np.exp(-(1.0 - chs * chs) / (chs * chs * a2))
+        f_cos = E / (4 * np.pi * a2) * np.sqrt(np.where(ok, ci, 0.0) / co)       # f cos_i (1/sr)
+        p_lobe = E / (4 * np.pi * a2 * chs * chs * chs * np.where(ok, oh, 1.0))
+        p_area = r * r * r / (np.pi * R * R * p[:, 2])
+        a_l, a_a = n_lobe * p_lobe, n2 * p_area
+        w = np.where(ok, f_cos * a_a / (a_l * a_l + a_a * a_a), 0.0)               # (n2, P)
+        if self.shadow is not None:
+            w = w * self._shadow_at(np.stack([x.ravel(), y.ravel()], 1)).reshape(n2, P)
+        return w.sum(axis=0)[:, None] * (self.circle - self.paper)[None, :]
+
+    def _delta_radiance_down(self, px, py, pz, wx, wy, wz):
+        """:meth:`delta_radiance` (3, Q), float32, for rays known to go down (``wz < -1e-6``) from points
+        ``(px, py, pz)`` (Q,) above the plane. Circles are tested exactly only on the rays whose hit
+        point lies in a cell of :attr:`_circle_cells` that may overlap one; the map is read on its
+        lower face only (bilinear, as :func:`appfusion.octahedral.sample_sphere_map`, from its
+        four-texel table).
+
+        Also returns the rays that hit a circle: their indices (H,), circle (H,), the circle's excess
+        over the paper there ``(L_circle - L_paper) shadow`` (3, H), and every ray's length to the
+        plane ``t`` (Q,), metres."""
+        t = -pz / wz
+        x = px + t * wx
+        y = py + t * wy
+        out = np.zeros((3, len(t)), np.float32)
+        none = np.zeros(0, np.int64)
+        i = np.flatnonzero(x * x + y * y <= np.float32(self.extent ** 2))
+        if len(i) == 0:
+            return out, none, none, np.zeros((3, 0)), t
+        x, y, dx, dy, dz = x[i], y[i], wx[i], wy[i], wz[i]
+        h, m_c, cells = self._circle_cells
+        cx = np.clip(((x + np.float32(self.extent)) * np.float32(1.0 / h)).astype(np.int64), 0, m_c - 1)
+        cy = np.clip(((y + np.float32(self.extent)) * np.float32(1.0 / h)).astype(np.int64), 0, m_c - 1)
+        cand = np.flatnonzero(cells[cx * m_c + cy])
+        hit, hc = none, none
+        if len(cand):
+            xy_c = np.stack([x[cand], y[cand]], 1).astype(np.float64)
+            inside = np.sum((xy_c[:, None, :] - self.centres[None, :, :2]) ** 2, axis=-1) <= self.radii ** 2
+            on = inside.any(axis=1)
+            hit, hc = cand[on], np.argmax(inside[on], axis=1)                   # (H,) rows of i, circle
+        ex = (self.circle - self.paper)[:, None]
+        if self.shadow is None:
+            plane = np.broadcast_to(self.paper.astype(np.float32)[:, None], (3, len(i)))
+            exc = np.broadcast_to(ex, (3, len(hit)))
+        else:
+            sh = self._shadow_at(np.stack([x, y], 1).astype(np.float64))
+            plane = (self.paper[:, None] * sh).astype(np.float32)
+            exc = ex * sh[hit]
+        if len(hit):
+            plane = plane.copy()
+            plane[:, hit] += exc.astype(np.float32)
+        N = self.env.shape[1]
+        s = np.abs(dx) + np.abs(dy) - dz
+        ux, uy = dx / s, dy / s
+        fx = (ux + uy + 1.0) * np.float32(0.5 * N) - np.float32(0.5)
+        fy = (ux - uy + 1.0) * np.float32(0.5 * N) - np.float32(0.5)
+        x0 = np.clip(np.floor(fx).astype(np.int64), 0, N - 1)
+        y0 = np.clip(np.floor(fy).astype(np.int64), 0, N - 1)
+        ax = np.clip(fx - x0, 0.0, 1.0)
+        ay = np.clip(fy - y0, 0.0, 1.0)
+        c4 = np.take(self._env_lower4, y0 * N + x0, axis=1)                      # (12, Q'): corner, channel
+        top = c4[0:3] + (c4[3:6] - c4[0:3]) * ax
+        bot = c4[6:9] + (c4[9:12] - c4[6:9]) * ax
+        out[:, i] = plane - (top + (bot - top) * ay)
+        return out, i[hit], hc, exc, t
+
+    def _delta_S_mc_reference(self, p, n, v, al, idx, k, r1, r2, out) -> None:
+        """The original per-ray implementation of :meth:`_delta_S_mc` (sample_ward, ward, delta_radiance
+        on every ray), kept as the reference the tests hold the fast path to."""
         g = (np.arange(k) + 0.5) / k
         u1, u2 = np.meshgrid(g, g, indexing="ij")
         u1, u2 = u1.ravel(), u2.ravel()                                         # (K,)
@@ -354,8 +643,8 @@ class SupportPlaneLight:
             a = al[j][:, None]
             F = local_frame(n[j])
             vl = np.einsum("mij,mj->mi", F, v[j])
-            uu1 = (u1[None, :] + rng.random((m, 1)) / k) % 1.0
-            uu2 = (u2[None, :] + rng.random((m, 1))) % 1.0
+            uu1 = (u1[None, :] + r1[s:s + chunk, None] / k) % 1.0
+            uu2 = (u2[None, :] + r2[s:s + chunk, None]) % 1.0
             vlk = np.broadcast_to(vl[:, None, :], (m, len(u1), 3))
             wi, vh, pdf = sample_ward(a, vlk, uu1, uu2)                            # (m, K, 3), (m, K), (m, K)
             ci = wi[..., 2]
