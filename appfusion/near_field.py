@@ -334,7 +334,7 @@ class SupportPlaneLight:
         circle_samples : int
             Area samples of each white circle a lobe may reach (the mirror ray within the circle's
             angular radius plus three lobe widths of its centre), combined with the lobe samples by
-            multiple importance sampling (balance heuristic, Veach 1997 §9.2). A circle is 20 times
+            multiple importance sampling (power heuristic, Veach 1997 §9.2). A circle is 20 times
             brighter than the paper and a few degrees wide: 4 lobe samples hit it with one sample or
             none, and that noise in S diluted the colour pass's regression of L on S (a glossy
             sphere's equator read a specular slope of 0.09 for 0.28). Uniform points of the disc see
@@ -432,7 +432,7 @@ class SupportPlaneLight:
         original per-ray implementation (:meth:`_delta_S_mc_reference`) on the same shifts. ``mis``:
         ``(bits, n2)``, per sample of ``idx`` the circles (bit c) that also get ``n2`` area samples
         (:meth:`_circle_mc`); a ray that hits one of them weighs the circle's excess over the paper by
-        the balance heuristic ``k^2 p_lobe / (k^2 p_lobe + n2 p_area)``.
+        the power heuristic ``(k^2 p_lobe)^2 / ((k^2 p_lobe)^2 + (n2 p_area)^2)``.
         """
         if len(idx) == 0:
             return
@@ -536,8 +536,8 @@ class SupportPlaneLight:
         (P, 3); Ward ``a`` (P,)): the circle's excess over the paper, ``int_disc (L_circle - L_paper)
         shadow f cos_i cos_c / r^2 dA`` (white units, (P, 3)), by ``k2 x k2`` stratified uniform points
         of the disc (``rho = R sqrt(u)``, ``psi = 2 pi w``; ``u`` shifted by ``ru / k2``, ``w`` by ``rw``),
-        each weighed against the ``n_lobe`` lobe samples by the balance heuristic ``g / (n_lobe p_lobe +
-        k2^2 p_area)``: ``p_area = r^3 / (A p_z)`` per steradian, ``p_lobe`` Walter's Ward pdf. Points of
+        each weighed against the ``n_lobe`` lobe samples by the power heuristic, ``f cos_i a_a / (a_l^2 +
+        a_a^2)`` with ``a_l = n_lobe p_lobe``, ``a_a = k2^2 p_area``: ``p_area = r^3 / (A p_z)`` per steradian, ``p_lobe`` Walter's Ward pdf. Points of
         the disc beyond ``extent_m`` add nothing (the map is kept there). Arrays (k2, k2, P)."""
         P = len(p)
         n2 = k2 * k2
