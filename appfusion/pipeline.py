@@ -109,6 +109,7 @@ class ScanConfig:
     rho_d_bins: int = 64
     rho_d_estimator: str = "lsq"
     rgb_split: bool = True
+    rgb_resweep: bool = True
     near_field: bool = True
     diffuse_tau: float | None = 0.25
     ir_pattern: bool = True
@@ -776,47 +777,8 @@ class ScanRunner:
                            "specular lobe in the IR: diffuse only, no double-product tables for them")
         self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular,
                            near_field=self._near_field(), **self._rgb_kwargs())
-        wb = self._white_balancer(self.geometry)
-        # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
-        marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None
         self._publish(force=True, stage="rgb", guidance=GUIDANCE["rgb"], tracking="ok")
-        used = no_marker = lost = 0
-        for frame in self._frames(start, stop, "rgb"):
-            if frame.rgb is None or frame.depth is None:
-                continue
-            pose = self.poses.get(frame.index)
-            if pose is None and marker_pose is not None:
-                track = marker_pose.track(frame)
-                pose = track.pose
-                self._publish(tracking=track.state, markers_visible=track.markers_visible)
-            if pose is None:
-                lost += 1
-                continue
-            b = wb.balance(frame, pose)
-            if b.reference is None:
-                no_marker += 1
-                continue
-            # saturation is a property of the sensor's raw values, not of the balanced ones (a highlight
-            # may be brighter than the white paper): mark raw-saturated pixels NaN, which RGBPass skips
-            raw = frame.rgb_linear()
-            rgb_b = np.where((raw >= 0.98).any(axis=-1, keepdims=True), np.nan, b.rgb).astype(np.float32)
-            self.rgb.add_frame(rgb_b, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
-                               frame.depth_to_rgb)
-            used += 1
-            if used % 10 == 0:
-                r = self.rgb.result()
-                hist = self._snap.history
-                hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
-                self._publish(rho_d=np.asarray(r.rho_d, np.float32), rho_s=np.asarray(r.rho_s, np.float32),
-                              history=hist)
-        if used == 0:
-            raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "
-                                   "no marker visible for white balance)")
-        if no_marker:
-            self._note(f"rgb: {no_marker} frames were skipped: no white reference (no circle in view yet, or the "
-                       "circles in view not where the frame's pose puts them)")
-        if lost:
-            self._note(f"rgb: tracking lost in {lost} frames")
+        used = self._rgb_sweep(self.rgb, start, stop, pass_name, live=True)
         splits = self.rgb.split_by_specular() if self.config.rgb_split and not self._painted else []
         for c, new, n in splits:
             self._note(f"rgb: {n} points of cluster {c} show far less specular reflection in colour than the "
@@ -832,6 +794,8 @@ class ScanRunner:
         sigma = np.full(len(alpha), np.nan, np.float32)
         if splits or merges:
             alpha, sigma = self._refit_ir(labels, alpha, sigma)
+            if self.config.rgb_resweep and not np.allclose(alpha, self.rgb.alphas, rtol=1e-3):
+                r, labels = self._rgb_resweep(labels, alpha, np.isfinite(sigma), start, stop, pass_name)
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
                             "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
@@ -843,6 +807,86 @@ class ScanRunner:
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
         self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
                    + "; ".join(", ".join(f"{v:.3f}" for v in row) for row in self._rgb_result["rho_s"]))
+
+    def _rgb_sweep(self, rgb, start: int, stop: int, pass_name: str, live: bool) -> int:
+        """One sweep of the RGB pass's frames into ``rgb`` (white balance §4.2, then Eq. 5's sums);
+        returns the frames used. ``live``: publish rho_d / rho_s every 10 frames."""
+        wb = self._white_balancer(self.geometry)
+        # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
+        marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None
+        used = no_marker = lost = 0
+        for frame in self._frames(start, stop, "rgb"):
+            if frame.rgb is None or frame.depth is None:
+                continue
+            pose = self.poses.get(frame.index)
+            if pose is None and marker_pose is not None:
+                track = marker_pose.track(frame)
+                pose = track.pose
+                if live:
+                    self._publish(tracking=track.state, markers_visible=track.markers_visible)
+            if pose is None:
+                lost += 1
+                continue
+            b = wb.balance(frame, pose)
+            if b.reference is None:
+                no_marker += 1
+                continue
+            # saturation is a property of the sensor's raw values, not of the balanced ones (a highlight
+            # may be brighter than the white paper): mark raw-saturated pixels NaN, which RGBPass skips
+            raw = frame.rgb_linear()
+            rgb_b = np.where((raw >= 0.98).any(axis=-1, keepdims=True), np.nan, b.rgb).astype(np.float32)
+            rgb.add_frame(rgb_b, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
+                          frame.depth_to_rgb)
+            used += 1
+            if live and used % 10 == 0:
+                r = rgb.result()
+                hist = self._snap.history
+                hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
+                self._publish(rho_d=np.asarray(r.rho_d, np.float32), rho_s=np.asarray(r.rho_s, np.float32),
+                              history=hist)
+        if used == 0:
+            raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "
+                                   "no marker visible for white balance)")
+        if live and no_marker:
+            self._note(f"rgb: {no_marker} frames were skipped: no white reference (no circle in view yet, or the "
+                       "circles in view not where the frame's pose puts them)")
+        if live and lost:
+            self._note(f"rgb: tracking lost in {lost} frames")
+        return used
+
+    def _rgb_resweep(self, labels: np.ndarray, alpha: np.ndarray, refitted: np.ndarray, start: int, stop: int,
+                     pass_name: str):
+        """Eq. 5 again over the RGB frames, with the clusters and lobes the first sweep settled.
+
+        The first sweep's double products S were built with the IR clusters' alphas. Once the colour
+        pass has split a cluster and the IR lobes were refitted to the new clusters (:meth:`_refit_ir`),
+        S of every point changes: on the demo the one IR cluster (alpha 0.051) becomes the paint
+        (0.066) and the label (0.35). rho_s of Eq. 8 is only meaningful with the S of the alpha it is
+        exported with, and the split-off cluster's rho_s was not measured at all (it was made
+        diffuse). The sums of §5.3 cannot be re-weighted after the fact (S enters them per sample),
+        so the frames are swept once more -- the recording is on disk, live scans included
+        (``live-session``). No further split. A cluster gets a lobe if it had one in the first sweep
+        or its lobe was refitted (``refitted``; a split-off cluster without an IR fit stays diffuse: a
+        borrowed alpha would be a guess), and the model ladder decides again which clusters keep it.
+        Returns the new :class:`RGBResult` and labels (caller order).
+        """
+        from .rgb_pass import RGBPass
+
+        P, N = self.points
+        first = self.rgb
+        self._note("rgb: second sweep with the refitted lobes (alpha "
+                   + ", ".join(f"{a:.3f}" for a in alpha) + ")")
+        specular = np.asarray(first.specular, bool) | np.asarray(refitted, bool)
+        rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables,
+                      near_field=first.near_field, near_field_samples=first.near_field_samples,
+                      **self._rgb_kwargs())
+        t_first = self.timings.get("rgb")
+        self._rgb_sweep(rgb, start, stop, pass_name, live=False)
+        self.timings["rgb-resweep"] = self.timings.pop("rgb", {})
+        if t_first is not None:
+            self.timings["rgb"] = t_first
+        self.rgb = rgb
+        return rgb.result(), rgb.labels_caller_order()
 
     def _refit_ir(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """IR Ward fits of the clusters the colour pass left (split / merged), from the IR pass's buffers.

@@ -51,3 +51,42 @@ def test_checkpoints_of_another_configuration_are_recomputed(kinect_sphere, tmp_
     r3, _ = _run(kinect_sphere, out, n_points=2000)            # same again: all reused
     assert not any("recomputing" in m for m in r3.messages)
     assert any("reusing the checkpointed" in m for m in r3.messages)
+
+
+def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_path):
+    """ScanRunner._rgb_resweep: the same frames swept again with the same lobes give the first
+    sweep's sums exactly; with another alpha the S (and so rho_s) changes; a split-off cluster whose
+    lobe was not refitted stays diffuse (no borrowed alpha), one whose lobe was refitted gets it."""
+    from appfusion.pipeline import plan_passes
+
+    with SessionReader(kinect_sphere) as src:
+        env = kinect_sphere / "truth" / "envmaps" / "office.exr"
+        r = ScanRunner(src, tmp_path / "scan", ScanConfig(**SMALL), envmap=env)
+        r.run()
+        first = r.rgb
+        passes = plan_passes(src)
+        a, b = passes["rgb"] if "rgb" in passes else passes["scan"]
+        labels = first.labels_caller_order()
+        alphas = np.asarray(first.alphas, np.float64)
+        res0 = first.result()
+        res1, lab1 = r._rgb_resweep(labels, alphas, np.zeros(len(alphas), bool), a, b, "rgb")
+        np.testing.assert_array_equal(lab1, labels)
+        np.testing.assert_array_equal(r.rgb.counts, first.counts)
+        np.testing.assert_allclose(r.rgb.sum_s2, first.sum_s2, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(res1.rho_s, res0.rho_s, rtol=1e-5, atol=1e-7)
+        assert "rgb-resweep" in r.timings and "rgb" in r.timings
+        # another alpha for the one cluster: other S, other rho_s
+        sharp = r.rgb
+        res2, _ = r._rgb_resweep(labels, alphas * 0.5, np.ones(len(alphas), bool), a, b, "rgb")
+        assert r.rgb.alphas[0] == alphas[0] * 0.5
+        assert not np.allclose(r.rgb.sum_s2, sharp.sum_s2)
+        assert np.isfinite(res2.rho_s).all() and np.isfinite(res2.rho_d).all()
+        # a split: half the points in a new cluster that carries the parent's alpha
+        half = np.where(np.arange(len(labels)) % 2 == 0, 0, 1).astype(np.int32)
+        r.rgb.specular = np.array([True, False])
+        two = np.r_[alphas[:1], alphas[:1]]
+        res3, _ = r._rgb_resweep(half, two, np.array([False, False]), a, b, "rgb")
+        assert list(r.rgb.specular) == [True, False] and (res3.rho_s[1] == 0).all()
+        r.rgb.specular = np.array([True, False])
+        r._rgb_resweep(half, np.r_[alphas[:1], [0.3]], np.array([False, True]), a, b, "rgb")
+        assert list(r.rgb.specular) == [True, True] and r.rgb.alphas[1] == 0.3
