@@ -36,8 +36,9 @@ from .frame import Frame
 PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: version of what the stages compute: bump it when a stage's output changes, so that checkpoints
 #: written by an older engine (``out_dir/state``) are recomputed instead of reused (3: 3 mm voxels, the
-#: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods)
-CHECKPOINT_VERSION = 4
+#: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods;
+#: 5: small holes of the fused mesh closed, the RGB pass's second sweep)
+CHECKPOINT_VERSION = 5
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
