@@ -553,12 +553,18 @@ def render_view(result: ScanResult, env: np.ndarray, intrinsics: Intrinsics, pos
         n = np.einsum("mk,mki->mi", bary, vn[tri])
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         pos = org[mask] + dirs[mask] * t[mask][:, None]
-        v_rd = transfer_to_vertices(result.positions, result.rho_d, V)
-        rd = np.einsum("mk,mki->mi", bary, v_rd[tri])
-        # per-point cluster parameters taken at the nearest sampled point (no blending across clusters)
+        # rho_d at the hit from the sampled points around it (inverse distance over 4): the points are
+        # ~10x denser than the mesh's vertices, and interpolating per-vertex rho_d over the triangles
+        # blurred the label's stripes and the material seam (demo: error off the highlights 0.124 ->
+        # 0.104 in one view). The shading normal stays the mesh's: normals taken from the points
+        # moved the highlights (docs/performance.md, "Relighting accuracy")
         from scipy.spatial import cKDTree
-        _, nearest = cKDTree(result.positions).query(pos)
-        lab = result.labels[nearest]
+        d, near = cKDTree(result.positions).query(pos, k=min(4, len(result.positions)))
+        d, near = d.reshape(len(pos), -1), near.reshape(len(pos), -1)
+        w = 1.0 / np.maximum(d, 1e-6)
+        rd = np.einsum("mk,mki->mi", w / w.sum(axis=1, keepdims=True), np.asarray(result.rho_d)[near])
+        # per-point cluster parameters taken at the nearest sampled point (no blending across clusters)
+        lab = result.labels[near[:, 0]]
         wo = -dirs[mask]
         # orient the shading normal to the side of the surface the camera sees: the side of the hit
         # triangle's geometric normal turned towards the viewer (robust to the mesh's winding and to

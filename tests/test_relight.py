@@ -78,6 +78,33 @@ def test_render_view_sphere_with_and_without_shadows():
     assert np.all(img[~mask] == 0)
 
 
+def test_render_view_takes_rho_d_from_the_points_not_the_coarse_mesh():
+    """A square of two triangles facing the camera, covered by dense points whose rho_d has a 4 mm
+    stripe: the relit image shows the stripe at its own width and value (per-vertex rho_d of the four
+    corners would smear it over the square)."""
+    V = np.array([[-0.05, -0.05, 0], [0.05, -0.05, 0], [0.05, 0.05, 0], [-0.05, 0.05, 0]], float)
+    F = np.array([[0, 1, 2], [0, 2, 3]])
+    g = np.linspace(-0.05, 0.05, 101)
+    gx, gy = np.meshgrid(g, g)
+    P = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
+    stripe = np.abs(P[:, 0]) < 0.002
+    rd = np.where(stripe[:, None], 0.1, 0.6) * np.ones((1, 3))
+    r = ScanResult(P, np.tile([0.0, 0.0, 1.0], (len(P), 1)), rd, np.zeros(len(P), np.int32), [[0, 0, 0]], [0.3],
+                   mesh_vertices=V, mesh_faces=F)
+    K = Intrinsics(81, 81, 400, 400, 40.0, 40.0)               # 0.5 mm a pixel at 0.2 m
+    pose = make_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.2])
+    env = _const_env(8, 1.0)
+    env[1] = 0.0                                               # light from above the square only
+    img, mask = render_view(r, env, K, pose, spp=16, shadows=False)
+    row = img[40, :, 1]
+    assert mask[40].all()
+    # Lambertian under a uniform upper hemisphere of 1: L = rho_d
+    assert row[40] == pytest.approx(0.1, rel=0.03)             # stripe centre
+    assert row[10] == pytest.approx(0.6, rel=0.03) and row[70] == pytest.approx(0.6, rel=0.03)
+    dark = np.flatnonzero(row < 0.35)
+    assert 6 <= len(dark) <= 10                                # ~4 mm = 8 pixels wide
+
+
 def test_bad_env_rejected():
     with pytest.raises(AppFusionError, match="shape"):
         EnvSampler(np.ones((8, 16, 3)))
