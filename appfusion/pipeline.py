@@ -801,8 +801,11 @@ class ScanRunner:
                             "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
         if r.heldout_rss is not None:
+            ward = r.rho_s_ward if r.rho_s_ward is not None else np.full((len(r.model), 3), np.nan)
             self._note("rgb: model ladder (held-out RSS diffuse / Ward): " + "; ".join(
-                f"cluster {c} {m} ({a:.3g} / {b:.3g})" for c, (m, (a, b)) in enumerate(zip(r.model, r.heldout_rss))))
+                f"cluster {c} {m} ({a:.3g} / {b:.3g}" + (f"; Ward's rho_s would be {np.mean(w):.4f})" if m == "diffuse"
+                                                         else ")")
+                for c, (m, (a, b), w) in enumerate(zip(r.model, r.heldout_rss, ward))))
         self._save_npz("rgb", **self._rgb_result)
         self._mark_done("rgb", {"frames": used})
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])

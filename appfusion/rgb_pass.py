@@ -100,6 +100,9 @@ class RGBResult:
         estimator.
     heldout_rss : (C, 2) float64
         Held-out residual sum of squares per cluster of the diffuse-only and of the Ward model.
+    rho_s_ward : (C, 3) float64
+        The Ward rung's rho_s (the pooled slope of Eq. 5, clamped at 0) also for the clusters the
+        ladder made diffuse: what the data would say of their lobe ("lsq" estimator only).
     """
 
     rho_d: np.ndarray
@@ -111,6 +114,7 @@ class RGBResult:
     notes: list = field(default_factory=list)
     model: list = field(default_factory=list)
     heldout_rss: np.ndarray | None = None
+    rho_s_ward: np.ndarray | None = None
 
 
 def histogram_percentile(hist: np.ndarray, lo: float, width: float, pct: float,
@@ -365,6 +369,7 @@ class RGBPass:
         self.ladder_margin = float(ladder_margin)
         self.model: list = ["ward"] * len(al)
         self.heldout_rss = None
+        self.rho_s_ward = None
         self.min_lsq_samples = max(1, int(min_lsq_samples))
         self.dark, self.saturated, self.min_cos = float(dark), float(saturated), float(min_cos)
         self.max_dist = max_dist
@@ -701,6 +706,7 @@ class RGBPass:
                                  and rss[c, 1] < (1 - self.ladder_margin) * rss[c, 0]) else "diffuse"
                       for c in range(C)]
         self.heldout_rss = rss
+        self.rho_s_ward = rho_s
         rho_s = np.where(np.array([m == "ward" for m in self.model])[:, None], rho_s, 0.0)
         D = np.maximum(self.D.astype(np.float64), 1e-12)
         rd = (self.sum_l - rho_s[lab] * self.sum_s) / nn / D
@@ -854,4 +860,5 @@ class RGBPass:
         r = self._rank                                        # back to the caller's point order
         model = list(self.model) if self.estimator == "lsq" else ["ward"] * C
         return RGBResult(out[r].astype(np.float32), rho_s.astype(np.float32), counts[r], observed[r], csamp,
-                         den, notes, model=model, heldout_rss=self.heldout_rss)
+                         den, notes, model=model, heldout_rss=self.heldout_rss,
+                         rho_s_ward=self.rho_s_ward if self.estimator == "lsq" else None)

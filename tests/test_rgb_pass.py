@@ -223,6 +223,9 @@ def test_split_by_specular_finds_the_material_the_ir_merged(sphere_run):
     assert moved.sum() > 0.3 * ((sc.labels == 0) & seen).sum()
     res = rp.result()
     assert res.model[1] == "diffuse" and (res.rho_s[1] == 0).all() and res.model[0] == "ward"
+    np.testing.assert_allclose(res.rho_s_ward[0], res.rho_s[0], rtol=1e-6)   # the Ward rung, kept
+    # the matte half's own slope (its sums hold S of the glossy alpha, taken before the split): ~its 0.01
+    assert res.rho_s_ward.shape == (2, 3) and 0.005 < res.rho_s_ward[1].mean() < 0.02
     assert rp.merge_alike() == []                                # glossy and diffuse stay apart
     assert rp.n_clusters == 2
 
