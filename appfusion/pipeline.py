@@ -812,33 +812,52 @@ class ScanRunner:
         self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
                    + "; ".join(", ".join(f"{v:.3f}" for v in row) for row in self._rgb_result["rho_s"]))
 
-    def _rgb_sweep(self, rgb, start: int, stop: int, pass_name: str, live: bool) -> int:
+    def _rgb_sweep(self, rgb, start: int, stop: int, pass_name: str, live: bool,
+                   calibrated: dict | None = None) -> int:
         """One sweep of the RGB pass's frames into ``rgb`` (white balance §4.2, then Eq. 5's sums);
-        returns the frames used. ``live``: publish rho_d / rho_s every 10 frames."""
-        wb = self._white_balancer(self.geometry)
-        # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
-        marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None
+        returns the frames used. ``live``: publish rho_d / rho_s every 10 frames.
+
+        ``calibrated``: per frame index, the ``(pose, white-balance gain)`` an earlier sweep found
+        (None: no pose or no white reference), reused instead of tracking the markers and balancing
+        again; without it, this sweep's are stored in ``self._rgb_calibration`` (a pose and three
+        gains a frame, like :attr:`poses`)."""
+        record = calibrated is None
+        if record:
+            self._rgb_calibration = {}
+            wb = self._white_balancer(self.geometry)
+            # frames of a separate RGB pass get their pose from the markers (the key circle makes it absolute)
+            marker_pose = _MarkerPose(self.source.meta) if pass_name != getattr(self, "_obj_pass", None) else None
         used = no_marker = lost = 0
         for frame in self._frames(start, stop, "rgb"):
             if frame.rgb is None or frame.depth is None:
                 continue
-            pose = self.poses.get(frame.index)
-            if pose is None and marker_pose is not None:
-                track = marker_pose.track(frame)
-                pose = track.pose
-                if live:
-                    self._publish(tracking=track.state, markers_visible=track.markers_visible)
-            if pose is None:
-                lost += 1
-                continue
-            b = wb.balance(frame, pose)
-            if b.reference is None:
-                no_marker += 1
-                continue
+            if not record:
+                pose, gain = calibrated.get(frame.index) or (None, None)
+                if pose is None or gain is None:
+                    continue
+                raw = frame.rgb_linear()
+                balanced = raw * gain                          # as WhiteBalancer.balance: float64 gain
+            else:
+                pose = self.poses.get(frame.index)
+                if pose is None and marker_pose is not None:
+                    track = marker_pose.track(frame)
+                    pose = track.pose
+                    if live:
+                        self._publish(tracking=track.state, markers_visible=track.markers_visible)
+                if pose is None:
+                    lost += 1
+                    self._rgb_calibration[frame.index] = None
+                    continue
+                b = wb.balance(frame, pose)
+                if b.reference is None:
+                    no_marker += 1
+                    self._rgb_calibration[frame.index] = (pose, None)
+                    continue
+                self._rgb_calibration[frame.index] = (np.asarray(pose), np.asarray(b.gain, np.float64))
+                raw, balanced = frame.rgb_linear(), b.rgb
             # saturation is a property of the sensor's raw values, not of the balanced ones (a highlight
             # may be brighter than the white paper): mark raw-saturated pixels NaN, which RGBPass skips
-            raw = frame.rgb_linear()
-            rgb_b = np.where((raw >= 0.98).any(axis=-1, keepdims=True), np.nan, b.rgb).astype(np.float32)
+            rgb_b = np.where((raw >= 0.98).any(axis=-1, keepdims=True), np.nan, balanced).astype(np.float32)
             rgb.add_frame(rgb_b, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
                           frame.depth_to_rgb)
             used += 1
@@ -885,7 +904,7 @@ class ScanRunner:
                       near_field=first.near_field, near_field_samples=first.near_field_samples,
                       **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
-        self._rgb_sweep(rgb, start, stop, pass_name, live=False)
+        self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
         self.timings["rgb-resweep"] = self.timings.pop("rgb", {})
         if t_first is not None:
             self.timings["rgb"] = t_first

@@ -85,6 +85,12 @@ def test_srgb_roundtrip():
     x = np.linspace(0, 1, 1001, dtype=np.float32)
     np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-5)
     assert srgb_to_linear(np.array([255], np.uint8))[0] == pytest.approx(1.0)
+    # uint8 codes (table look-up) decode exactly as the same values given as floats
+    codes = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    lin = srgb_to_linear(codes)
+    assert lin.dtype == np.float32 and lin.shape == (16, 16)
+    np.testing.assert_array_equal(lin, srgb_to_linear(codes.astype(np.float32) / 255.0))
+    assert lin[0, 10] == pytest.approx(10 / 255 / 12.92) and lin[8, 0] == pytest.approx(((128 / 255 + 0.055) / 1.055) ** 2.4)
     f = Frame(0, 0.0, rgb=np.full((2, 2, 3), 128, np.uint8))
     assert f.rgb_linear().dtype == np.float32 and f.streams == ("rgb",)
     with pytest.raises(AppFusionError, match="rgb_encoding"):
