@@ -891,7 +891,10 @@ class ScanRunner:
         (``live-session``). No further split. A cluster gets a lobe if it had one in the first sweep
         or its lobe was refitted (``refitted``; a split-off cluster without an IR fit stays diffuse: a
         borrowed alpha would be a guess), and the model ladder decides again which clusters keep it.
-        Returns the new :class:`RGBResult` and labels (caller order).
+        With ``rgb_split``, the lobes the first sweep kept are measured on every point too, and each
+        point then goes to the cluster whose model fits its neighbourhood best
+        (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`). Returns the new :class:`RGBResult`
+        and labels (caller order).
         """
         from .rgb_pass import RGBPass
 
@@ -900,15 +903,22 @@ class ScanRunner:
         self._note("rgb: second sweep with the refitted lobes (alpha "
                    + ", ".join(f"{a:.3f}" for a in alpha) + ")")
         specular = np.asarray(first.specular, bool) | np.asarray(refitted, bool)
+        # the lobes the first sweep measured (its model ladder kept them) are also measured on every
+        # other point, so that each point can go to the model that explains it best
+        kept = [c for c in range(min(len(alpha), len(first.model))) if first.model[c] == "ward" and specular[c]]
+        compare = np.unique(np.asarray(alpha, np.float64)[kept]) if self.config.rgb_split else None
         rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables,
                       near_field=first.near_field, near_field_samples=first.near_field_samples,
-                      **self._rgb_kwargs())
+                      compare_alphas=compare, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
         self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
         self.timings["rgb-resweep"] = self.timings.pop("rgb", {})
         if t_first is not None:
             self.timings["rgb"] = t_first
         self.rgb = rgb
+        if compare is not None and len(compare):
+            moved = rgb.reassign_by_model()
+            self._note(f"rgb: {moved} points moved to the cluster whose colour model fits their neighbourhood best")
         return rgb.result(), rgb.labels_caller_order()
 
     def _refit_ir(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
