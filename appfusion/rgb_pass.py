@@ -296,7 +296,7 @@ class RGBPass:
     compare_alphas : sequence of float, optional
         Lobes every point is also measured against (:meth:`reassign_by_model`): per point and alpha,
         the running sums of S, S^2, S L and of the diffuse weighting with the S of that alpha (for the
-        points whose own lobe is another one; 112 bytes per point and alpha).
+        points whose own lobe is another one; 128 bytes per point and alpha).
     """
 
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
