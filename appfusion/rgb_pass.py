@@ -604,18 +604,14 @@ class RGBPass:
             return 0
         p, L, wo, nrm = p[k], L[k], wo[k], nrm[k]
         sp = self._spec_point[p]
+        seed = self.frames * 7919 + st["samples"]
         if sp.all():
-            S = self.tables.S(nrm, wo, self.point_alpha[p])                  # (k, 3) float32
+            S = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed)           # (k, 3) float32
         else:                                                 # diffuse-only clusters: S = 0, no table
             S = np.zeros((len(p), 3), np.float32)
             if sp.any():
-                S[sp] = self.tables.S(nrm[sp], wo[sp], self.point_alpha[p[sp]])
-        if self.near_field is not None and sp.any():
-            i = np.flatnonzero(sp)
-            dS = self.near_field.delta_S(self.positions[p[i]], nrm[i], wo[i], self.point_alpha[p[i]],
-                                         n_samples=self.near_field_samples, seed=self.frames * 7919 + st["samples"])
-            S[i] = np.maximum(S[i] + dS, 0.0).astype(np.float32)
-        Sc = self._compare_S(p, nrm, wo, sp, seed=self.frames * 7919 + st["samples"] + 1)
+                S[sp] = self._lobe_S(p[sp], nrm[sp], wo[sp], self.point_alpha[p[sp]], seed)
+        Sc = self._compare_S(p, nrm, wo, sp, seed=seed + 1)
         if unique:
             self._accumulate(p, L, S, Sc)
         else:                                                 # repeated points: rounds of distinct ones
@@ -628,6 +624,17 @@ class RGBPass:
         st["samples"] += len(p)
         return int(len(p))
 
+    def _lobe_S(self, p, nrm, wo, alpha, seed: int) -> np.ndarray:
+        """S (k, 3) float32 of samples of internal points ``p`` with normals, views (k, 3) and lobes
+        ``alpha`` (k,): the double product (§5.3), plus the support plane's ``dS`` (clamped at 0) when
+        the near field is on."""
+        S = self.tables.S(nrm, wo, alpha)
+        if self.near_field is not None:
+            dS = self.near_field.delta_S(self.positions[p], nrm, wo, alpha, n_samples=self.near_field_samples,
+                                         seed=seed)
+            S = np.maximum(S + dS, 0.0).astype(np.float32)
+        return S
+
     def _compare_S(self, p, nrm, wo, sp, seed: int) -> list:
         """Per compare alpha: (need (k,) bool, S (k, 3) float32) for the samples of points whose own
         lobe is another one (or none); S is 0 where not needed."""
@@ -637,12 +644,7 @@ class RGBPass:
             Sm = np.zeros((len(p), 3), np.float32)
             i = np.flatnonzero(need)
             if len(i):
-                al = np.full(len(i), a)
-                Sm[i] = self.tables.S(nrm[i], wo[i], al)
-                if self.near_field is not None:
-                    dS = self.near_field.delta_S(self.positions[p[i]], nrm[i], wo[i], al,
-                                                 n_samples=self.near_field_samples, seed=seed + 104729 * (m + 1))
-                    Sm[i] = np.maximum(Sm[i] + dS, 0.0)
+                Sm[i] = self._lobe_S(p[i], nrm[i], wo[i], np.full(len(i), a), seed + 104729 * (m + 1))
             out.append((need, Sm))
         return out
 
