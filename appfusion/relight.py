@@ -558,13 +558,9 @@ def render_view(result: ScanResult, env: np.ndarray, intrinsics: Intrinsics, pos
         # blurred the label's stripes and the material seam (demo: error off the highlights 0.124 ->
         # 0.104 in one view). The shading normal stays the mesh's: normals taken from the points
         # moved the highlights (docs/performance.md, "Relighting accuracy")
-        from scipy.spatial import cKDTree
-        d, near = cKDTree(result.positions).query(pos, k=min(4, len(result.positions)))
-        d, near = d.reshape(len(pos), -1), near.reshape(len(pos), -1)
-        w = 1.0 / np.maximum(d, 1e-6)
-        rd = np.einsum("mk,mki->mi", w / w.sum(axis=1, keepdims=True), np.asarray(result.rho_d)[near])
+        rd = transfer_to_vertices(result.positions, np.asarray(result.rho_d), pos)
         # per-point cluster parameters taken at the nearest sampled point (no blending across clusters)
-        lab = result.labels[near[:, 0]]
+        lab = transfer_to_vertices(result.positions, np.asarray(result.labels), pos, nearest=True)
         wo = -dirs[mask]
         # orient the shading normal to the side of the surface the camera sees: the side of the hit
         # triangle's geometric normal turned towards the viewer (robust to the mesh's winding and to
