@@ -33,7 +33,7 @@ from .errors import AppFusionError, EstimationError
 from .frame import Intrinsics
 
 __all__ = ["PointGrid", "register_pixels", "mean_spacing", "sample_points", "bilateral_filter_normals",
-           "bilateral_denoise_points"]
+           "bilateral_denoise_points", "normal_gradient", "normal_at_offset"]
 
 #: largest look-up table a grid may allocate (cells; int32 each, so 2**25 cells = 128 MiB)
 MAX_GRID_CELLS = 2 ** 25
@@ -354,6 +354,120 @@ def register_pixels(positions: np.ndarray, normals: np.ndarray | None, depth: np
     else:
         _GRID_CACHE.move_to_end(key)
     return grid.register(depth, intrinsics, pose)
+
+
+# -- the normal's change across a point's neighbourhood (for samples registered off the point) --------
+#: :func:`normal_gradient`: neighbours whose normal is farther than this from the point's are left out
+#: (a crease, the other side of a thin wall)
+GRADIENT_MAX_ANGLE_DEG = 30.0
+#: :func:`normal_at_offset` tilts a normal by at most this much (a bad gradient at a crease or a
+#: hole's edge can't throw a sample far off)
+MAX_TILT_DEG = 10.0
+
+
+def normal_gradient(positions: np.ndarray, normals: np.ndarray, k: int = 16,
+                    max_angle_deg: float = GRADIENT_MAX_ANGLE_DEG) -> np.ndarray:
+    """How each point's unit normal turns as one moves along its tangent plane (a 2 x 2 shape operator).
+
+    Pixels are registered to the *nearest sampled point* (paper §4.1), on average half a point
+    spacing away (0.7 mm on the demo's 100k points). On a curved surface the pixel's own normal then
+    differs from the point's: on the demo bottle by 0.84 degrees median, 1.85 degrees RMS, which is
+    what widens a 3.4-degree Ward lobe (alpha 0.06) fitted from the samples by +4 to +8 %. With this
+    gradient, :func:`normal_at_offset` gives the sample the normal at its own place on the surface
+    (0.005 degrees median off the truth with exact normals at the points).
+
+    For each point, the tangent components ``(n_j . t, n_j . b)`` of its ``k`` nearest neighbours'
+    normals are fitted, by least squares, as a linear function of their tangent offsets
+    ``((p_j - p) . t, (p_j - p) . b)``; ``t, b, n`` is :func:`appfusion.brdf.local_frame` of the point's
+    normal. Neighbours whose normals are more than ``max_angle_deg`` from the point's (a crease) are
+    left out; the normal equations are regularised by 1e-3 of their trace, so a point whose
+    neighbours lie on a line gets no slope across it.
+
+    Parameters
+    ----------
+    positions, normals : (N, 3) arrays
+        Points (metres) and unit normals.
+    k : int
+        Neighbours per point.
+    max_angle_deg : float
+        Largest angle between a neighbour's normal and the point's.
+
+    Returns
+    -------
+    (N, 2, 2) float32 array
+        ``G[i] @ (du, dv)`` is the change of ``(n . t, n . b)`` for a tangent offset ``(du, dv)``
+        (metres), so ``G`` is in 1/m (the curvature, up to sign convention; ~1/radius on a cylinder).
+    """
+    P, Nn = check_oriented_points(positions, normals, "normal_gradient")
+    n = len(P)
+    G = np.zeros((n, 2, 2), np.float32)
+    kk = int(min(k, n - 1))
+    if kk < 2:
+        return G
+    F = local_frame(Nn)                                  # (N, 3, 3): rows t, b, n
+    cos_max = np.cos(np.radians(max_angle_deg))
+    nb = cKDTree(P).query(P, k=kk + 1, workers=-1)[1][:, 1:]
+    for lo in range(0, n, 20000):                        # bounded memory: 20k x k x 3 at a time
+        sl = slice(lo, min(lo + 20000, n))
+        Fi, j = F[sl], nb[sl]
+        D = P[j] - P[sl, None]
+        Nj = Nn[j]
+        A = np.stack([np.einsum("pkj,pj->pk", D, Fi[:, 0]), np.einsum("pkj,pj->pk", D, Fi[:, 1])], -1)
+        y = np.stack([np.einsum("pkj,pj->pk", Nj, Fi[:, 0]), np.einsum("pkj,pj->pk", Nj, Fi[:, 1])], -1)
+        w = (np.einsum("pkj,pj->pk", Nj, Fi[:, 2]) > cos_max).astype(np.float64)
+        M = np.einsum("pk,pki,pkj->pij", w, A, A)
+        tr = M[:, 0, 0] + M[:, 1, 1]
+        M += (1e-3 * tr + 1e-30)[:, None, None] * np.eye(2)
+        R = np.einsum("pk,pki,pkj->pji", w, A, y)          # sum w y A^T: (p, 2 [out], 2 [in])
+        G[sl] = (R @ np.linalg.inv(M)).astype(np.float32)  # M is symmetric
+    return G
+
+
+def normal_at_offset(frame_rows, gradient, du, dv, max_tilt_deg: float = MAX_TILT_DEG):
+    """A point's local frame tilted to a place ``(du, dv)`` along its tangent plane (first order).
+
+    With ``(a, b) = G (du, dv)`` (:func:`normal_gradient`, clipped to ``tan(max_tilt_deg)``), the normal
+    there is ``n + a t + b b`` (normalised) and the tangents ``t - a n``, ``b - b n``, orthonormal up
+    to second order in the tilt (0.07 degrees at a 3-degree tilt).
+
+    Parameters
+    ----------
+    frame_rows : sequence of 9 (m,) arrays
+        ``t_x, t_y, t_z, b_x, b_y, b_z, n_x, n_y, n_z`` of the samples' points.
+    gradient : sequence of 4 (m,) arrays
+        ``G00, G01, G10, G11`` of the samples' points.
+    du, dv : (m,) arrays
+        Tangent offsets of the samples from their points, metres.
+
+    Returns
+    -------
+    list of 9 (m,) float32 arrays
+        The tilted frame, same order.
+    """
+    f32 = np.float32
+    lim = f32(np.tan(np.radians(max_tilt_deg)))
+    g00, g01, g10, g11 = gradient
+    a = g00 * du
+    a += g01 * dv
+    b = g10 * du
+    b += g11 * dv
+    for x in (a, b):                                  # in place: np.clip is ~3x slower
+        np.minimum(x, lim, out=x)
+        np.maximum(x, -lim, out=x)
+    tx, ty, tz, bx, by, bz, nx, ny, nz = frame_rows
+    inv = a * a
+    inv += b * b
+    inv += f32(1.0)
+    np.sqrt(inv, out=inv)
+    np.divide(f32(1.0), inv, out=inv)
+    out = [tx - a * nx, ty - a * ny, tz - a * nz, bx - b * nx, by - b * ny, bz - b * nz]
+    for n_, t_, b_ in ((nx, tx, bx), (ny, ty, by), (nz, tz, bz)):
+        v = a * t_
+        v += b * b_
+        v += n_
+        v *= inv
+        out.append(v)
+    return out
 
 
 # -- sampling (paper §4.1: "randomly sampling points with a probability proportional to the surface area")

@@ -279,3 +279,18 @@ def test_pattern_mode_clusters_with_clipped_samples_at_the_clip_level():
     plain = BRDFCut(P, N, min_leaf=50, emitter=(1.6, 0.355, 0.431))
     plain.clip_sum, plain.clip_n = 30.0, 10
     assert np.array_equal(plain._clustering_sums(d), d[:3])
+
+
+def test_samples_take_the_normal_at_their_own_place_on_the_surface():
+    """Pixels register to the nearest of sparse points: on a sphere with 3000 points a pixel's normal
+    differs from its point's by ~1.3 degrees, which widened the Ward lobe fitted from them (alpha
+    +3.4 %). With the normal's gradient each sample is tilted to its own place (`normal_gradient`)."""
+    sc, P, N, truth = S.two_material_sphere(seed=5, n_points=3000, one_material=True)
+    poses = S.orbit_poses(sc.center, 0.5, per_ring=12, seed=5)
+    a_true = sc.materials[0].alpha
+    err = {}
+    for g in (False, True):
+        ip = IRPass(P, N, sc.profile(), min_leaf=32, normal_gradient=g)
+        S.scan(ip, sc, poses)
+        err[g] = ip.result(k=1).clusters[0].fit.alpha / a_true - 1
+    assert err[False] > 0.02 and abs(err[True]) < 0.01, err

@@ -232,3 +232,49 @@ def test_bilateral_denoise_points_reduces_noise():
     before = np.abs(np.linalg.norm(noisy, axis=1) - 0.1)
     after = np.abs(np.linalg.norm(out, axis=1) - 0.1)
     assert np.median(after) < 0.5 * np.median(before)
+
+
+def test_normal_gradient_is_the_curvature_and_tilts_normals_to_the_sample():
+    """On a sphere of radius R the normal turns by 1/R per metre along any tangent; on a cylinder by
+    1/R across the axis and not at all along it. The tilted frame at an offset matches the exact
+    normal there (what the IR pass gives a pixel registered off its point)."""
+    from appfusion.brdf import local_frame
+    from appfusion.points import normal_at_offset, normal_gradient
+
+    rng = np.random.default_rng(3)
+    R = 0.04
+    u = rng.normal(size=(4000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    G = normal_gradient(R * u, u)
+    assert G.shape == (4000, 2, 2) and G.dtype == np.float32
+    np.testing.assert_allclose(np.median(G, axis=0), np.eye(2) / R, atol=0.5)
+    assert np.percentile(np.abs(G - np.eye(2) / R).max(axis=(1, 2)), 95) < 0.05 / R
+    # cylinder about z: eigenvalues 1/R and 0
+    phi, zz = rng.uniform(0, 2 * np.pi, 6000), rng.uniform(0, 0.1, 6000)
+    n = np.stack([np.cos(phi), np.sin(phi), 0 * phi], 1)
+    P = np.stack([R * n[:, 0], R * n[:, 1], zz], 1)
+    Gc = normal_gradient(P, n).astype(np.float64)
+    inner = (zz > 0.01) & (zz < 0.09)
+    ev = np.sort(np.linalg.eigvals(Gc[inner]).real, axis=1)
+    np.testing.assert_allclose(np.median(ev, axis=0), [0, 1 / R], atol=0.03 / R)
+    # tilt at 1 mm offsets on the sphere, against the exact normal there
+    F = local_frame(u[:500]).astype(np.float32)
+    du, dv = rng.uniform(-1e-3, 1e-3, (2, 500)).astype(np.float32)
+    rows = [F[:, i, j] for i in range(3) for j in range(3)]
+    grad = [G[:500, i, j] for i in (0, 1) for j in (0, 1)]
+    tilted = np.stack(normal_at_offset(rows, grad, du, dv), 1).reshape(-1, 3, 3)
+    q = R * u[:500] + du[:, None] * F[:, 0] + dv[:, None] * F[:, 1]
+    exact = q / np.linalg.norm(q, axis=1, keepdims=True)
+    before = np.degrees(np.arccos(np.clip(np.sum(u[:500] * exact, 1), -1, 1)))
+    after = np.degrees(np.arccos(np.clip(np.sum(tilted[:, 2] * exact, 1), -1, 1)))
+    assert np.median(before) > 0.8 and np.median(after) < 0.05, (np.median(before), np.median(after))
+    # the tilted frame stays orthonormal to first order
+    np.testing.assert_allclose(np.einsum("pij,pkj->pik", tilted, tilted), np.broadcast_to(np.eye(3), (500, 3, 3)),
+                               atol=2e-3)
+    # a crease: the other face's normals are left out, so a flat face keeps a zero gradient
+    P2 = np.concatenate([np.c_[rng.uniform(-0.02, 0, (2000, 2)), np.zeros(2000)],
+                         np.c_[np.zeros(2000), rng.uniform(0, 0.02, (2000, 2))]])
+    N2 = np.concatenate([np.tile([0, 0, 1.0], (2000, 1)), np.tile([1.0, 0, 0], (2000, 1))])
+    assert np.abs(normal_gradient(P2, N2)).max() < 1e-3
+    with pytest.raises(AppFusionError, match="normal_gradient"):
+        normal_gradient(np.zeros((3, 3)), np.zeros((3, 3)))

@@ -72,13 +72,15 @@ def update_rate(quick: bool, seed: int) -> dict[str, Any]:
         X = [R[a, 0] * xc + R[a, 1] * yc + R[a, 2] * z + np.float32(T[a, 3]) for a in range(3)]
         pre.append((pts, X, ir.ravel()[pix], T[:3, 3], T[:3, :3] @ np.asarray(sc.emitter) + T[:3, 3]))
         cam.append((xc, yc, z))
-    for pts, X, raw, C, E in pre[:2]:                     # warm up (page in the leaf HBSABs)
-        ip._add(pts, X[0], X[1], X[2], raw, C, E)
+    # the update: each pixel's tangent offset from its point (the normal tilt, IRPass._frame_terms)
+    # and the HBSAB sums; registration is timed apart
+    for (pts, X, raw, C, E), (xc, yc, z), T in list(zip(pre, cam, poses))[:2]:   # warm up (page in the HBSABs)
+        ip._add(pts, X[0], X[1], X[2], raw, C, E, *ip._frame_terms(pts, xc, yc, z, X, T, sc.emitter))
     times, cpu = [], []
     for rep in range(2 if quick else 3):
-        for pts, X, raw, C, E in pre:
+        for (pts, X, raw, C, E), (xc, yc, z), T in zip(pre, cam, poses):
             t0, c0 = time.perf_counter(), time.process_time()
-            ip._add(pts, X[0], X[1], X[2], raw, C, E)
+            ip._add(pts, X[0], X[1], X[2], raw, C, E, *ip._frame_terms(pts, xc, yc, z, X, T, sc.emitter))
             cpu.append(time.process_time() - c0)
             times.append(time.perf_counter() - t0)
     t_upd = float(np.median(cpu))               # CPU time: the machine may be shared with other jobs
@@ -98,7 +100,7 @@ def update_rate(quick: bool, seed: int) -> dict[str, Any]:
     for rep in range(2 if quick else 3):
         for (pts, X, raw, C, E), (xc, yc, z), T in zip(pre, cam, poses):
             c0 = time.process_time()
-            ipp._add(pts, X[0], X[1], X[2], raw, C, E, ipp._pattern_values(pts, xc, yc, z, T, sc.emitter))
+            ipp._add(pts, X[0], X[1], X[2], raw, C, E, *ipp._frame_terms(pts, xc, yc, z, X, T, sc.emitter))
             cpu_p.append(time.process_time() - c0)
     t_pat = float(np.median(cpu_p))
     c0 = time.process_time()
