@@ -37,8 +37,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: version of what the stages compute: bump it when a stage's output changes, so that checkpoints
 #: written by an older engine (``out_dir/state``) are recomputed instead of reused (3: 3 mm voxels, the
 #: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods;
-#: 5: small holes of the fused mesh closed, the RGB pass's second sweep)
-CHECKPOINT_VERSION = 5
+#: 5: small holes of the fused mesh closed, the RGB pass's second sweep; 6: IR samples with their own
+#: normals and poses re-registered to the final mesh)
+CHECKPOINT_VERSION = 6
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -76,6 +77,10 @@ class ScanConfig:
     diffuse_tau : float or None
         rho_d by the least squares of Eq. 5 with each sample weighted by ``1 / (1 + (S / (tau D))^2)``
         (diffuse-dominated views count most, as Eq. 6's minimum intends); None: unweighted.
+    refine_poses : bool
+        Re-register each depth frame of the IR pass (and of a combined IR + RGB pass) to the final mesh
+        before its samples are taken (:class:`appfusion.geometry_pass.PoseRefiner`; beyond the
+        paper): tracking's poses are relative to the model fused so far.
     ir_pattern : bool
         Calibrate the IR emitter's fixed pattern from the calibration sheet and divide it out of every
         IR sample (:mod:`calibration.ir_pattern`; beyond the paper's stationary-noise model, §6).
@@ -113,6 +118,7 @@ class ScanConfig:
     rgb_resweep: bool = True
     near_field: bool = True
     diffuse_tau: float | None = 0.25
+    refine_poses: bool = True
     ir_pattern: bool = True
     frame_stride: int = 1
     ball_radius_m: float | None = None
@@ -704,6 +710,7 @@ class ScanRunner:
             pose = self.poses.get(frame.index)
             if pose is None or frame.ir is None or frame.depth is None or frame.emitter is False:
                 continue
+            pose = self._refined_pose(frame, pose)
             self.ir.add_frame(frame.ir, frame.depth, frame.depth_intrinsics, pose, emitter)
             used += 1
             if used % 15 == 0:
@@ -718,6 +725,22 @@ class ScanRunner:
         self._mark_done("ir", {"frames": used, "k": res.k, "k_auto": res.k_auto, "notes": res.notes})
         al = ", ".join(f"{a:.3f}" for a in self._ir_result["alpha"])
         self._note(f"ir: {res.k} specular cluster(s){' (automatic k)' if res.k_auto else ''}, alpha = {al}")
+
+    def _refined_pose(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
+        """A tracked pose re-registered to the final mesh (``refine_poses``), once per frame index;
+        the tracked pose itself without a mesh or with the option off. :attr:`poses` keeps the
+        tracked ones (the trajectory the scan reports)."""
+        if not self.config.refine_poses or self.mesh is None or len(self.mesh[1]) == 0 or frame.depth is None:
+            return pose
+        cache = self.__dict__.setdefault("_refined", {})
+        if frame.index not in cache:
+            if getattr(self, "_refiner", None) is None:
+                from .geometry_pass import PoseRefiner
+
+                self._refiner = PoseRefiner(*self.mesh)
+            K = frame.depth_intrinsics
+            cache[frame.index] = self._refiner.refine(frame.depth, K, pose)[0] if K is not None else pose
+        return cache[frame.index]
 
     @staticmethod
     def _ir_arrays(res) -> dict[str, np.ndarray]:
@@ -839,6 +862,8 @@ class ScanRunner:
                 balanced = raw * gain                          # as WhiteBalancer.balance: float64 gain
             else:
                 pose = self.poses.get(frame.index)
+                if pose is not None:                           # a depth-tracked frame (combined pass)
+                    pose = self._refined_pose(frame, pose)
                 if pose is None and marker_pose is not None:
                     track = marker_pose.track(frame)
                     pose = track.pose
