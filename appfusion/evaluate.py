@@ -333,11 +333,13 @@ def relit_error(result: ScanResult, tdir: Path, spp: int = 64, env_n: int = 256)
     object in, all reference views together (``references/views.json``); the images are linear
     radiance in the environment's units. The reference map (``truth/envmaps/NAME.exr``) is resampled
     to a ``2 x env_n^2`` octahedral map; :func:`appfusion.relight.render_view` with ``spp`` samples
-    per strategy.
+    per strategy. The result's points are made a :class:`appfusion.points.NormalField` once, for all
+    views.
 
     The renderer's own floor (issue #8; docs/performance.md, "Relighting accuracy"), measured on the
     demo session with the *truth* reflectance on the *truth* geometry (a ScanResult of the truth
-    mesh's vertices): 0.022 (it was 0.073, and 0.084 in an earlier measurement, when the sun was
+    mesh's vertices): 0.026 (re-measured in session 7: since session 6 takes rho_d from the 4 nearest
+    points at each hit, the oracle's 2.5 mm vertex spacing blurs its seam a little more), before that 0.022 (it was 0.073, and 0.084 in an earlier measurement, when the sun was
     integrated by Monte Carlo over the map's texels), 0.012 on the truth mesh subdivided twice
     (thinner bands of blended rho_d and labels along the material seam, which a point-based result
     cannot keep sharp); 0.0045 of that is the renderer's Monte Carlo noise at 64 samples and 0.0014
@@ -354,12 +356,15 @@ def relit_error(result: ScanResult, tdir: Path, spp: int = 64, env_n: int = 256)
     K = Intrinsics.from_json(info["intrinsics"])
     env_name = info.get("environment", "sunset")
     env = truth_envmap(tdir, env_name, env_n)
+    from .points import NormalField
+
+    field = NormalField(result.positions, result.normals)
     num = den = 0.0
     pairs = []
     for v in info["views"]:
         ref = cv2.imread(str(tdir / "references" / v["exr"]), cv2.IMREAD_UNCHANGED)[..., ::-1].astype(np.float32)
         mask_ref = cv2.imread(str(tdir / "references" / v["mask"]), cv2.IMREAD_GRAYSCALE) > 0
-        img, mask = render_view(result, env, K, np.asarray(v["pose"]), spp=spp)
+        img, mask = render_view(result, env, K, np.asarray(v["pose"]), spp=spp, normal_field=field)
         m = mask_ref & mask
         num += float(np.sum((img[m] - ref[m]) ** 2))
         den += float(np.sum(ref[m] ** 2))

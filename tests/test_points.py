@@ -278,3 +278,27 @@ def test_normal_gradient_is_the_curvature_and_tilts_normals_to_the_sample():
     assert np.abs(normal_gradient(P2, N2)).max() < 1e-3
     with pytest.raises(AppFusionError, match="normal_gradient"):
         normal_gradient(np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+def test_normal_field_gives_the_normal_between_the_points():
+    """NormalField (relit views' shading normal): the nearest point's normal tilted to the query's
+    place on a 4 cm sphere with 2000 points is far closer to the exact normal than the nearest
+    point's own."""
+    from appfusion.points import NormalField
+
+    rng = np.random.default_rng(4)
+    R = 0.04
+    u = rng.normal(size=(2000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    field = NormalField(R * u, u)
+    q = rng.normal(size=(3000, 3))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    n = field(R * q)
+    near = u[cKDTree(R * u).query(R * q)[1]]
+    err = np.degrees(np.arccos(np.clip(np.sum(n * q, 1), -1, 1)))
+    err_near = np.degrees(np.arccos(np.clip(np.sum(near * q, 1), -1, 1)))
+    assert np.median(err_near) > 1.0 and np.median(err) < 0.05, (np.median(err_near), np.median(err))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-6)
+    assert field(np.zeros((0, 3))).shape == (0, 3)
+    with pytest.raises(AppFusionError, match="NaN"):
+        field(np.full((1, 3), np.nan))
