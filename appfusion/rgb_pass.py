@@ -63,6 +63,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .diffuse_term import envmap_check
 from .double_product import DoubleProductTables
@@ -209,6 +210,56 @@ def _voxel_pool(positions: np.ndarray, labels: np.ndarray, values: np.ndarray, h
     fallback = wsum <= 1e-12
     out[fallback] = pooled[own[fallback]]
     return np.where(fallback[:, None], out, out / np.maximum(wsum, 1e-12)[:, None])
+
+
+def _choose_by_evidence(rss: np.ndarray, var: np.ndarray, cands: np.ndarray, movable: np.ndarray,
+                        positions: np.ndarray, rho_d: np.ndarray, min_z: float, radius: float) -> np.ndarray:
+    """Cluster per point from pooled model residuals, colour where they do not decide
+    (:meth:`RGBPass.reassign_by_model`).
+
+    Parameters
+    ----------
+    rss, var : (P, K) arrays
+        Pooled RSS of each candidate model, and the variance of its lobe's share of it.
+    cands : (K,) int array
+        The candidates' cluster numbers.
+    movable : (P,) bool array
+        Points that may take any candidate (others: the result there is the best candidate but unused).
+    positions : (P, 3) array
+    rho_d : (P, 3) array
+        The points' diffuse albedo (their colour).
+    min_z : float
+        Gap between the best and second-best RSS, in standard errors, below which colour decides.
+    radius : float
+        Metres: how far a weak point looks for confident neighbours (its 32 nearest).
+
+    Returns
+    -------
+    (P,) int array of cluster numbers: the best model's, or for a weak point the cluster of its
+    confident neighbour with the closest rho_d chromaticity (the best model's if it has none).
+    """
+    order = np.argsort(rss, axis=1, kind="stable")
+    rows = np.arange(len(rss))
+    best, second = order[:, 0], order[:, 1]
+    gap = rss[rows, second] - rss[rows, best]
+    z = gap / np.sqrt(np.maximum(var[rows, best] + var[rows, second], 1e-300))
+    choice = np.asarray(cands)[best]
+    weak = movable & (z < float(min_z))
+    strong = np.flatnonzero(movable & ~weak)
+    if not weak.any() or len(strong) == 0:
+        return choice
+    chrom = rho_d / np.maximum(rho_d.sum(axis=1, keepdims=True), 1e-9)
+    wi = np.flatnonzero(weak)
+    dd, nb = cKDTree(positions[strong]).query(positions[wi], k=min(32, len(strong)), distance_upper_bound=float(radius))
+    dd, nb = dd.reshape(len(wi), -1), nb.reshape(len(wi), -1)
+    ok = np.isfinite(dd)
+    nbi = strong[np.where(ok, nb, 0)]
+    cd = np.where(ok, np.abs(chrom[nbi] - chrom[wi][:, None]).sum(axis=-1), np.inf)
+    has = ok.any(axis=1)
+    pick = nbi[np.arange(len(wi)), np.argmin(cd, axis=1)]
+    out = choice.copy()
+    out[wi[has]] = choice[pick[has]]
+    return out
 
 
 def _normal_order(normals: np.ndarray) -> np.ndarray:
@@ -872,7 +923,8 @@ class RGBPass:
             out.append((i, j))
         return out
 
-    def reassign_by_model(self, pool_m: float = 0.008, min_samples: int = 3) -> int:
+    def reassign_by_model(self, pool_m: float = 0.008, min_samples: int = 3, min_z: float = 3.0,
+                          colour_radius_m: float = 0.02) -> int:
         """Move each point to the cluster whose Eq. 5 model explains its neighbourhood's colour best.
 
         After the colour split (:meth:`split_by_specular`) and the IR refit, each cluster has its own
@@ -884,6 +936,17 @@ class RGBPass:
         point, over *all* points there (the split pooled within one cluster), and the point goes to the
         lowest: the maximum-likelihood choice between the fitted models, without the split's
         three-standard-error margin (which guarded a new cluster that had no model yet).
+
+        Where the evidence is weak, colour decides. A lobe's share of a point's RSS difference,
+        ``2 rho_s C_SL - rho_s^2 V_SS``, has a standard error of about ``2 rho_s s sqrt(V_SS)`` under the
+        other model (``s^2`` the point's per-sample variance, ``V_LL / (n - 1)``, per channel); pooled like the RSS,
+        the gap between the best and the second-best model counts in those errors (``z``). A point whose
+        views never put a highlight where the models differ has ``z`` near 0, and argmin alone took the
+        first cluster: on the demo a patch of the label at the bottom (0-3 cm) went to the paint. A
+        point with ``z < min_z`` takes the cluster of the point among its 32 nearest confident
+        neighbours (``z >= min_z``, within ``colour_radius_m``) whose rho_d has the closest
+        chromaticity: a material's colour is the weaker evidence, used only where the BRDF gives none.
+        Measured offline on the demo's sums (session 6): 0.959 -> 0.965.
 
         Candidates are the diffuse clusters and those whose lobe is among ``compare_alphas``; points
         of other clusters stay. A moved point's S sums become those of its new lobe (the compare
@@ -900,8 +963,9 @@ class RGBPass:
         res = self.result()                                   # the model ladder's rungs and rho_s
         lab = self.labels
         use, n, _, _, vll = self._within_point_moments(min_samples)
+        s2 = np.where(use[:, None], vll / np.maximum(n - 1, 1), 0.0)     # per-sample variance, (P, 3)
         vll = vll.sum(axis=1)
-        cands, rss, lobe = [], [], {}
+        cands, rss, var, lobe = [], [], [], {}
         for c in range(self.n_clusters):
             if not (lab == c).any():
                 continue
@@ -909,6 +973,7 @@ class RGBPass:
             if res.model[c] == "diffuse" or rs_c.max() <= 0:
                 cands.append(c)
                 rss.append(vll)
+                var.append(np.zeros_like(vll))
                 continue
             hit = np.flatnonzero(np.isclose(self.compare_alphas, self.alphas[c], rtol=1e-6, atol=0.0))
             if len(hit) == 0:
@@ -922,14 +987,20 @@ class RGBPass:
             v_ss = np.where(use[:, None], np.maximum(s2 - s * s / n, 0.0), 0.0)
             cands.append(c)
             rss.append(vll - (2 * rs_c * c_sl - rs_c * rs_c * v_ss).sum(axis=1))
+            var.append(4.0 * (rs_c * rs_c * s2 * v_ss).sum(axis=1))
             lobe[c] = (m, own[:, 0])
         if len(cands) < 2:
             return 0
+        k = len(cands)
         h = max(float(pool_m), 2.0 * mean_spacing(self.positions)) if len(self.positions) > 8 else float(pool_m)
-        vals = np.column_stack([np.where(use[:, None], np.stack(rss, axis=1), 0.0), use.astype(np.float64)])
+        vals = np.column_stack([np.where(use[:, None], np.stack(rss + var, axis=1), 0.0), use.astype(np.float64)])
         pooled = _voxel_pool(self.positions, np.zeros(len(lab), np.int64), vals, h)
         movable = np.isin(lab, cands) & (pooled[:, -1] > 0)
-        new = np.where(movable, np.asarray(cands)[np.argmin(pooled[:, :-1], axis=1)], lab)
+        rd = np.empty((len(lab), 3))
+        rd[self._rank] = np.asarray(res.rho_d, np.float64)             # caller's order -> internal
+        choice = _choose_by_evidence(pooled[:, :k], pooled[:, k:2 * k], np.asarray(cands), movable,
+                                     self.positions, rd, min_z, colour_radius_m)
+        new = np.where(movable, choice, lab)
         moved = new != lab
         for c, (m, own) in lobe.items():
             q = moved & (new == c) & ~own

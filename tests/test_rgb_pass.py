@@ -392,3 +392,35 @@ def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run):
     assert res.model[0] == "ward" and abs(res.rho_s[0].mean() - 0.4) < abs(res0.rho_s[0].mean() - 0.4)
     with pytest.raises(AppFusionError, match="compare_alphas"):
         RGBPass(sc.positions, sc.normals, given, [a0, 0.3], sc.env, tables=rp0.tables, compare_alphas=[np.nan])
+
+
+def test_weak_model_evidence_is_decided_by_colour():
+    """reassign_by_model's decision (_choose_by_evidence): a point whose models' pooled residuals
+    differ by less than min_z standard errors takes the cluster of its confident neighbour with the
+    closest colour; strong evidence is kept even against colour; without confident neighbours the
+    best model stays."""
+    from appfusion.rgb_pass import _choose_by_evidence
+
+    rng = np.random.default_rng(0)
+    P = rng.uniform(0, 0.05, (400, 3))
+    blue = P[:, 0] < 0.025                                   # two materials side by side, two colours
+    rd = np.where(blue[:, None], [0.05, 0.12, 0.45], [0.7, 0.6, 0.45]) * rng.uniform(0.9, 1.1, (400, 1))
+    rss = np.where(blue[:, None], [1.0, 50.0], [50.0, 1.0])  # strong evidence: blue -> 0, cream -> 1
+    var = np.ones((400, 2))
+    tie = rng.random(400) < 0.3                              # no evidence at all: equal residuals
+    rss[tie] = 10.0
+    movable = np.ones(400, bool)
+    cands = np.array([0, 1])
+    truth = np.where(blue, 0, 1)
+    argmin_only = _choose_by_evidence(rss, var, cands, movable, P, rd, 0.0, 0.02)
+    assert (argmin_only[tie] == 0).all()                     # ties went to the first candidate
+    by_colour = _choose_by_evidence(rss, var, cands, movable, P, rd, 3.0, 0.02)
+    assert (by_colour == truth).all()
+    # strong evidence against colour stays
+    rss2 = rss.copy()
+    odd = np.flatnonzero(~blue & ~tie)[:5]
+    rss2[odd] = [1.0, 50.0]
+    assert (_choose_by_evidence(rss2, var, cands, movable, P, rd, 3.0, 0.02)[odd] == 0).all()
+    # no confident neighbour within the radius: the best model (here the first of a tie)
+    far = _choose_by_evidence(rss, var, cands, movable, P, rd, 3.0, 1e-6)
+    assert (far[tie] == 0).all()
