@@ -442,6 +442,19 @@ class ScanRunner:
             except Exception as e:  # an observer must never break the scan
                 self._note(f"snapshot observer failed: {type(e).__name__}: {e}")
 
+    def _progress_due(self, used: int, every: int) -> bool:
+        """Whether a pass should publish its running estimates after ``used`` frames: every ``every``
+        frames while someone watches (:meth:`subscribe`, the GUI), else at ``every`` x 1, 2, 4, 8, ...
+        frames, enough for the report's convergence plots. The estimates cost 0.7-0.9 s each on the
+        demo (the rho_d percentiles of 100k histograms, the IR clusters' fits): 25 s of a headless scan
+        when taken every 10-15 frames, ~7 s on the doubling schedule."""
+        if used <= 0 or used % every:
+            return False
+        if self._subscribers:
+            return True
+        k = used // every
+        return k & (k - 1) == 0
+
     def _note(self, msg: str) -> None:
         if not self.messages or self.messages[-1] != msg:
             self.messages.append(msg)
@@ -713,7 +726,7 @@ class ScanRunner:
             pose = self._refined_pose(frame, pose)
             self.ir.add_frame(frame.ir, frame.depth, frame.depth_intrinsics, pose, emitter)
             used += 1
-            if used % 15 == 0:
+            if self._progress_due(used, 15):
                 self._publish_ir(self.ir.result(fit=True), used)
         if used == 0:
             raise PassMissingError("the geometry pass has no IR frames with tracked poses: clusters and "
@@ -886,7 +899,7 @@ class ScanRunner:
             rgb.add_frame(rgb_b, frame.depth, frame.rgb_intrinsics, frame.depth_intrinsics, pose,
                           frame.depth_to_rgb)
             used += 1
-            if live and used % 10 == 0:
+            if live and self._progress_due(used, 10):
                 r = rgb.result()
                 hist = self._snap.history
                 hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
