@@ -38,8 +38,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: written by an older engine (``out_dir/state``) are recomputed instead of reused (3: 3 mm voxels, the
 #: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods;
 #: 5: small holes of the fused mesh closed, the RGB pass's second sweep; 6: IR samples with their own
-#: normals and poses re-registered to the final mesh)
-CHECKPOINT_VERSION = 6
+#: normals and poses re-registered to the final mesh; 7: filled holes wound like the mesh around them)
+CHECKPOINT_VERSION = 7
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 

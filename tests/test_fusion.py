@@ -465,7 +465,8 @@ def _boundary_loops(mesh):
 
 def test_fill_small_holes_closes_small_holes_only():
     """Paper §6 hole cleaning: a 5 cm sphere cut open at the bottom (a 3.5 cm rim, like an object on
-    the plane) with two ~5 mm holes in its top: the small holes are closed, the rim stays open."""
+    the plane) with two ~5 mm holes in its top: the small holes are closed, wound like the sphere, the
+    rim stays open."""
     from appfusion.geometry_pass import fill_small_holes
 
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=0.05, resolution=60)
@@ -488,6 +489,14 @@ def test_fill_small_holes_closes_small_holes_only():
     from scipy.spatial import cKDTree
     d, _ = cKDTree(np.asarray(mesh.vertices)).query(np.asarray(out.vertices))
     assert d.max() < 1e-6                                           # (float32 round trip)
+    # the patches are wound like the sphere around them: no edge run twice the same way, every
+    # triangle facing out (VTK's filler had wound 45 of them inwards)
+    Fo = np.asarray(out.triangles).astype(np.int64)
+    Vo = np.asarray(out.vertices)
+    E = np.concatenate([Fo[:, [0, 1]], Fo[:, [1, 2]], Fo[:, [2, 0]]])
+    assert len(np.unique(E[:, 0] * len(Vo) + E[:, 1])) == len(E)
+    fn = np.cross(Vo[Fo[:, 1]] - Vo[Fo[:, 0]], Vo[Fo[:, 2]] - Vo[Fo[:, 0]])
+    assert (np.einsum("ij,ij->i", fn, Vo[Fo].mean(axis=1)) > 0).all()
     assert fill_small_holes(mesh, 0.0) is mesh                     # switched off
     assert len(_boundary_loops(fill_small_holes(mesh, 0.002))) == 3   # holes above the radius stay
 
