@@ -213,7 +213,8 @@ def _voxel_pool(positions: np.ndarray, labels: np.ndarray, values: np.ndarray, h
 
 
 def _choose_by_evidence(rss: np.ndarray, var: np.ndarray, cands: np.ndarray, movable: np.ndarray,
-                        positions: np.ndarray, rho_d: np.ndarray, min_z: float, radius: float) -> np.ndarray:
+                        positions: np.ndarray, rho_d: np.ndarray, min_z: float, radius: float,
+                        colour_tol: float = 0.1) -> np.ndarray:
     """Cluster per point from pooled model residuals, colour where they do not decide
     (:meth:`RGBPass.reassign_by_model`).
 
@@ -232,11 +233,16 @@ def _choose_by_evidence(rss: np.ndarray, var: np.ndarray, cands: np.ndarray, mov
         Gap between the best and second-best RSS, in standard errors, below which colour decides.
     radius : float
         Metres: how far a weak point looks for confident neighbours (its 32 nearest).
+    colour_tol : float
+        Largest L1 distance of rho_d chromaticities (``rho_d / sum rho_d``) that counts as the same
+        colour (the demo's blue paint and cream label: 0.94; the label's brown stripes and cream: 0.37;
+        a point's own noise ~0.02).
 
     Returns
     -------
     (P,) int array of cluster numbers: the best model's, or for a weak point the cluster of its
-    confident neighbour with the closest rho_d chromaticity (the best model's if it has none).
+    confident neighbour with the closest rho_d chromaticity if that is the same colour (else the
+    best model's).
     """
     order = np.argsort(rss, axis=1, kind="stable")
     rows = np.arange(len(rss))
@@ -255,8 +261,9 @@ def _choose_by_evidence(rss: np.ndarray, var: np.ndarray, cands: np.ndarray, mov
     ok = np.isfinite(dd)
     nbi = strong[np.where(ok, nb, 0)]
     cd = np.where(ok, np.abs(chrom[nbi] - chrom[wi][:, None]).sum(axis=-1), np.inf)
-    has = ok.any(axis=1)
-    pick = nbi[np.arange(len(wi)), np.argmin(cd, axis=1)]
+    j = np.argmin(cd, axis=1)
+    has = cd[np.arange(len(wi)), j] <= float(colour_tol)          # a neighbour of the same colour
+    pick = nbi[np.arange(len(wi)), j]
     out = choice.copy()
     out[wi[has]] = choice[pick[has]]
     return out
@@ -945,8 +952,8 @@ class RGBPass:
         first cluster: on the demo a patch of the label at the bottom (0-3 cm) went to the paint. A
         point with ``z < min_z`` takes the cluster of the point among its 32 nearest confident
         neighbours (``z >= min_z``, within ``colour_radius_m``) whose rho_d has the closest
-        chromaticity: a material's colour is the weaker evidence, used only where the BRDF gives none.
-        Measured offline on the demo's sums (session 6): 0.959 -> 0.965.
+        chromaticity, if that is the same colour (:func:`_choose_by_evidence`): a material's colour is
+        the weaker evidence, used only where the BRDF gives none.
 
         Candidates are the diffuse clusters and those whose lobe is among ``compare_alphas``; points
         of other clusters stay. A moved point's S sums become those of its new lobe (the compare

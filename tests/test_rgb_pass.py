@@ -397,8 +397,8 @@ def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run):
 def test_weak_model_evidence_is_decided_by_colour():
     """reassign_by_model's decision (_choose_by_evidence): a point whose models' pooled residuals
     differ by less than min_z standard errors takes the cluster of its confident neighbour with the
-    closest colour; strong evidence is kept even against colour; without confident neighbours the
-    best model stays."""
+    closest colour, if that colour is the same; strong evidence is kept even against colour; without
+    a confident neighbour of its colour the best model stays."""
     from appfusion.rgb_pass import _choose_by_evidence
 
     rng = np.random.default_rng(0)
@@ -424,3 +424,8 @@ def test_weak_model_evidence_is_decided_by_colour():
     # no confident neighbour within the radius: the best model (here the first of a tie)
     far = _choose_by_evidence(rss, var, cands, movable, P, rd, 3.0, 1e-6)
     assert (far[tie] == 0).all()
+    # a weak point whose confident neighbours are all of another colour keeps the best model's choice
+    rd3 = rd.copy()
+    rd3[tie & ~blue] = [0.2, 0.6, 0.2]                       # green: like no confident neighbour
+    other = _choose_by_evidence(rss, var, cands, movable, P, rd3, 3.0, 0.02)
+    assert (other[tie & ~blue] == 0).all() and (other[tie & blue] == 0).all()
