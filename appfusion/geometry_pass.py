@@ -536,6 +536,7 @@ class PoseRefiner:
     step : int
         Pixel stride in both directions.
     iterations : int
+        Gauss-Newton steps (demo: 2 -> 0.272 mm, 3 -> 0.266 mm, 4 no better).
     max_dist : float
         Largest point-to-mesh distance of a pair, metres.
     sigma_depth, sigma_rot, sigma_trans : float
@@ -544,7 +545,7 @@ class PoseRefiner:
         Fewer pairs than this and the pose is returned unchanged.
     """
 
-    def __init__(self, vertices, faces, step: int = 2, iterations: int = 4, max_dist: float = 0.004,
+    def __init__(self, vertices, faces, step: int = 2, iterations: int = 3, max_dist: float = 0.004,
                  sigma_depth: float = 0.0007, sigma_rot: float = np.radians(0.2), sigma_trans: float = 0.0015,
                  min_pairs: int = 200):
         V = np.asarray(vertices, dtype=np.float32)

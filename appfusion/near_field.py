@@ -34,6 +34,7 @@ plane) is ignored, as everywhere in the paper.
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -287,6 +288,17 @@ class SupportPlaneLight:
         """
         P = np.asarray(points, np.float64).reshape(-1, 3)
         N = np.asarray(normals, np.float64).reshape(-1, 3)
+        # the scan asks twice for the same points (the RGB pass and its second sweep): 4-5 s each on
+        # the demo's 100k points, so the last answer is kept, keyed by the inputs' bytes
+        key = hashlib.blake2b(P.tobytes() + N.tobytes(), digest_size=16).digest()
+        cached = getattr(self, "_delta_D_last", None)
+        if cached is not None and cached[0] == key:
+            return cached[1].copy()
+        out = self._delta_D(P, N, chunk)
+        self._delta_D_last = (key, out.copy())
+        return out
+
+    def _delta_D(self, P: np.ndarray, N: np.ndarray, chunk: int) -> np.ndarray:
         out = np.zeros((len(P), 3))
         dq, om, Lq = self._dir_q, self._om_q, self._env_q
         cp, ca = self._circle_pts

@@ -41,6 +41,10 @@ def test_delta_D_of_a_downward_normal_is_the_disc_form_factor():
                             extent_m=ext, n_quad=64)
     extra = nfc.delta_D(p, n)[0] - nf.delta_D(p, n)[0]
     np.testing.assert_allclose(extra, (1.0 - paper) * a * a / (a * a + h * h), rtol=0.03)
+    # asked again for the same points (the RGB pass's second sweep), the kept answer: equal, and a copy
+    first = nf.delta_D(p, n)
+    first[:] = -1.0
+    np.testing.assert_allclose(nf.delta_D(p, n)[0], want, rtol=0.02, atol=2e-4)
 
 
 def test_delta_S_matches_brute_force_with_the_plane_as_lower_hemisphere():
