@@ -338,8 +338,9 @@ def relit_error(result: ScanResult, tdir: Path, spp: int = 64, env_n: int = 256)
 
     The renderer's own floor (issue #8; docs/performance.md, "Relighting accuracy"), measured on the
     demo session with the *truth* reflectance on the *truth* geometry (a ScanResult of the truth
-    mesh's vertices): 0.026 (re-measured in session 7: since session 6 takes rho_d from the 4 nearest
-    points at each hit, the oracle's 2.5 mm vertex spacing blurs its seam a little more), before that 0.022 (it was 0.073, and 0.084 in an earlier measurement, when the sun was
+    mesh's vertices): 0.026 when re-measured in session 7, 0.022 when first measured (not traced;
+    likely session 6 taking rho_d from the 4 nearest points at each hit, with the oracle's points
+    2.5 mm apart) (it was 0.073, and 0.084 in an earlier measurement, when the sun was
     integrated by Monte Carlo over the map's texels), 0.012 on the truth mesh subdivided twice
     (thinner bands of blended rho_d and labels along the material seam, which a point-based result
     cannot keep sharp); 0.0045 of that is the renderer's Monte Carlo noise at 64 samples and 0.0014
