@@ -39,9 +39,9 @@ from .brdf import local_frame
 from .brdf_cut import BRDFCut, CutResult
 from .errors import AppFusionError
 from .frame import Intrinsics
+from .hbsab import CH_SAT, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, _channels
 from .points import normal_at_offset
 from .points import normal_gradient as _normal_gradient
-from .hbsab import CH_SAT, DEFAULT_MAX_ANGLE_DEG, DEFAULT_N, _channels
 
 
 class IRPass:
