@@ -320,6 +320,8 @@ class ScanRunner:
         self.mesh: tuple[np.ndarray, np.ndarray] | None = None
         self.poses: dict[int, np.ndarray] = {}
         self._result = None
+        self._refiner = None                  # PoseRefiner of the final mesh, built on first use
+        self._refined: dict[int, np.ndarray] = {}   # frame index -> pose re-registered to the mesh
 
     # -- control (thread-safe; called from the GUI thread) -------------------------------------------
     def subscribe(self, callback: Callable[[Snapshot], None]) -> None:
@@ -745,9 +747,9 @@ class ScanRunner:
         tracked ones (the trajectory the scan reports)."""
         if not self.config.refine_poses or self.mesh is None or len(self.mesh[1]) == 0 or frame.depth is None:
             return pose
-        cache = self.__dict__.setdefault("_refined", {})
+        cache = self._refined
         if frame.index not in cache:
-            if getattr(self, "_refiner", None) is None:
+            if self._refiner is None:
                 from .geometry_pass import PoseRefiner
 
                 self._refiner = PoseRefiner(*self.mesh)
