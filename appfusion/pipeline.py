@@ -853,7 +853,8 @@ class ScanRunner:
     def _rgb_sweep(self, rgb, start: int, stop: int, pass_name: str, live: bool,
                    calibrated: dict | None = None) -> int:
         """One sweep of the RGB pass's frames into ``rgb`` (white balance §4.2, then Eq. 5's sums);
-        returns the frames used. ``live``: publish rho_d / rho_s every 10 frames.
+        returns the frames used. ``live``: publish rho_d / rho_s every 10 frames (on the doubling
+        schedule of :meth:`_progress_due` when nobody subscribes).
 
         ``calibrated``: per frame index, the ``(pose, white-balance gain)`` an earlier sweep found
         (None: no pose or no white reference), reused instead of tracking the markers and balancing

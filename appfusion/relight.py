@@ -554,7 +554,7 @@ def render_view(result: ScanResult, env: np.ndarray, intrinsics: Intrinsics, pos
         # normal's gradient to the vertex (points.NormalField), interpolated over the hit triangle.
         # Demo: vertex normals 0.34 degrees off the truth against 0.41 by inverse distance over 4
         # points (whose centroid is not the vertex); relit 0.199 -> 0.190. Tilting at each hit instead
-        # gave the same on the scan, but 0.031 instead of 0.022 on the truth oracle (below)
+        # gave the same on the scan, but 0.031 instead of 0.026 on the truth oracle (docs/performance.md)
         if normal_field is None:
             from .points import NormalField
 
