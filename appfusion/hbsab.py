@@ -140,34 +140,67 @@ def half_vector_samples(wi: np.ndarray, wo: np.ndarray, value: np.ndarray, n: in
 
 def _channels(hx, hy, hz, ci, co, value, w, n) -> HalfVectorSamples:
     """Texels and channel contributions from local half vectors ``h = w_i + w_o`` (unnormalised
-    components; ``hz = cos(theta_i) + cos(theta_o) > 0``) and the samples' values and weights."""
-    s = np.abs(hx) + np.abs(hy) + hz                # octahedral map (appfusion.octahedral.hemi_encode)
-    px, py = hx / s, hy / s
-    half_n = 0.5 * n
-    fu = (px + py + 1) * half_n                     # in [0, n]
-    fv = (px - py + 1) * half_n
-    colf = np.clip(np.floor(fu), 0, n - 1)
-    rowf = np.clip(np.floor(fv), 0, n - 1)
-    a = 2 * (fu - colf) - 1                         # position inside the texel, [-1, 1]
-    b = 2 * (fv - rowf) - 1
-    cos_h = hz / np.sqrt(hx * hx + hy * hy + hz * hz)
-    g = cos_h / np.sqrt(ci * co)
-    wv = w * value
-    ch = np.empty((N_CHANNELS, len(w)), dtype=np.result_type(w.dtype, np.float32))
-    ch[CH_W] = w
-    ch[CH_WV] = wv
-    ch[CH_WV2] = wv * value
-    ch[CH_WG] = w * g
+    components; ``hz = cos(theta_i) + cos(theta_o) > 0``) and the samples' values and weights.
+
+    The IR pass's per-frame path (~200k samples): every channel is written in place into its row
+    (no per-channel temporaries)."""
+    dt = np.result_type(w.dtype, np.float32)
+    m = len(w)
+    ch = np.empty((N_CHANNELS, m), dtype=dt)
+    # octahedral map (appfusion.octahedral.hemi_encode): p = h / (|hx| + |hy| + hz);
+    # fu = (px + py + 1) n / 2, fv = (px - py + 1) n / 2, in [0, n]
+    half_n = dt.type(0.5 * n)
+    k = np.abs(hx, dtype=dt)
+    k += np.abs(hy)
+    k += hz
+    np.divide(half_n, k, out=k)
+    fu = hx + hy
+    fu *= k
+    fu += half_n
+    fv = np.subtract(hx, hy, dtype=dt)
+    fv *= k
+    fv += half_n
+    colf = np.floor(fu)
+    np.clip(colf, 0, n - 1, out=colf)
+    rowf = np.floor(fv)
+    np.clip(rowf, 0, n - 1, out=rowf)
+    # position inside the texel, [-1, 1]: a = 2 (fu - col) - 1, b likewise (in fu, fv's place)
+    a, b = fu, fv
+    a -= colf
+    a *= 2
+    a -= 1
+    b -= rowf
+    b *= 2
+    b -= 1
+    # g = cos(theta_h) / sqrt(cos_i cos_o), cos(theta_h) = hz / |h|
+    g = np.multiply(hx, hx, dtype=dt)
+    g += hy * hy
+    g += hz * hz
+    g *= ci
+    g *= co
+    np.sqrt(g, out=g)
+    np.divide(hz, g, out=g)
+    np.copyto(ch[CH_W], w)
+    np.multiply(w, value, out=ch[CH_WV])
+    np.multiply(ch[CH_WV], value, out=ch[CH_WV2])
+    np.multiply(w, g, out=ch[CH_WG])
     ch[CH_SAT] = 0.0
-    ch[CH_M] = w * a
-    ch[CH_M + 1] = w * b
-    ch[CH_M + 2] = w * (1.5 * a * a - 0.5)
-    ch[CH_M + 3] = w * (a * b)
-    ch[CH_M + 4] = w * (1.5 * b * b - 0.5)
-    return HalfVectorSamples(None, (rowf * n + colf).astype(np.int64), ch)
+    wa, wb = ch[CH_M], ch[CH_M + 1]
+    np.multiply(w, a, out=wa)
+    np.multiply(w, b, out=wb)
+    half_w = np.multiply(w, dt.type(0.5))
+    for row, x, y in ((CH_M + 2, wa, a), (CH_M + 4, wb, b)):   # w (1.5 x^2 - 0.5)
+        np.multiply(x, y, out=ch[row])
+        ch[row] *= dt.type(1.5)
+        ch[row] -= half_w
+    np.multiply(wa, b, out=ch[CH_M + 3])                       # w a b
+    rowf *= n
+    rowf += colf
+    return HalfVectorSamples(None, rowf.astype(np.int64), ch)
 
 
-def scatter_add(target: np.ndarray, keys: np.ndarray, channels: np.ndarray, lut: np.ndarray | None = None) -> None:
+def scatter_add(target: np.ndarray, keys: np.ndarray, channels: np.ndarray, lut: np.ndarray | None = None,
+                mark: np.ndarray | None = None) -> None:
     """Add per-sample channel values into ``target[:, key]`` (vectorised, repeated keys summed).
 
     Parameters
@@ -180,6 +213,10 @@ def scatter_add(target: np.ndarray, keys: np.ndarray, channels: np.ndarray, lut:
         Per-sample contributions.
     lut : (M,) int64 array, optional
         Scratch space of length ``M`` reused between calls (saves an allocation per frame).
+    mark : (M,) bool array, optional
+        Scratch space of length ``M``, all False, reused between calls (left all False): the distinct
+        keys are found by marking them, about 4x faster than counting them into a fresh ``M``-long
+        array (on a 100k-point IR pass, M ~ 1.5 M: 1 ms instead of 4.6 ms a frame).
 
     Notes
     -----
@@ -194,8 +231,12 @@ def scatter_add(target: np.ndarray, keys: np.ndarray, channels: np.ndarray, lut:
     if m * 16 < M:                               # few samples: sorting them is cheaper
         uniq, inv = np.unique(keys, return_inverse=True)
     else:
-        counts = np.bincount(keys, minlength=M)
-        uniq = np.flatnonzero(counts)
+        if mark is not None and len(mark) >= M:
+            mark[keys] = True
+            uniq = np.flatnonzero(mark[:M])
+            mark[uniq] = False
+        else:
+            uniq = np.flatnonzero(np.bincount(keys, minlength=M))
         if lut is None or len(lut) < M:
             lut = np.empty(M, np.int64)
         lut[uniq] = np.arange(len(uniq))
@@ -205,6 +246,8 @@ def scatter_add(target: np.ndarray, keys: np.ndarray, channels: np.ndarray, lut:
     for c in range(channels.shape[0]):          # a handful of channels, not a loop over samples
         row = channels[c]
         if c == CH_SAT:                          # mostly zero: sum only the saturated samples
+            if not row.any():
+                continue
             nz = np.flatnonzero(row)
             if len(nz):
                 agg[c] = np.bincount(inv[nz], row[nz], k)
@@ -249,7 +292,8 @@ class HBSAB:
         elif data.ndim != 3 or data.shape[0] != N_CHANNELS or data.shape[2] != self.n * self.n:
             raise AppFusionError(f"HBSAB: data must have shape ({N_CHANNELS}, B, {self.n * self.n}), got {data.shape}")
         self.data = data
-        self._lut: np.ndarray | None = None
+        self._lut: np.ndarray | None = None                # scatter_add's scratch (not state)
+        self._mark: np.ndarray | None = None
 
     # -- shape and views -----------------------------------------------------------------
     @property
@@ -359,7 +403,8 @@ class HBSAB:
         flat = self.data.reshape(N_CHANNELS, -1)
         if self._lut is None or len(self._lut) != flat.shape[1]:
             self._lut = np.empty(flat.shape[1], np.int64)
-        scatter_add(flat, np.asarray(keys, dtype=np.int64), channels, self._lut)
+            self._mark = np.zeros(flat.shape[1], bool)
+        scatter_add(flat, np.asarray(keys, dtype=np.int64), channels, self._lut, self._mark)
 
     def clear(self) -> None:
         self.data[...] = 0

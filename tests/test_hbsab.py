@@ -127,10 +127,17 @@ def test_scatter_add_both_paths():
         keys = rng.integers(0, M, m)
         ch = rng.random((N_CHANNELS, m))
         ch[CH_SAT] = np.where(rng.random(m) < 0.01, ch[CH_SAT], 0.0)
+        ref = np.stack([np.bincount(keys, c, M) for c in ch])
         out = np.zeros((N_CHANNELS, M))
         scatter_add(out, keys, ch)
-        ref = np.stack([np.bincount(keys, c, M) for c in ch])
         np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12)
+        # with the scratch arrays (the IR pass's path): same sums, the mark left all False
+        lut, mark = np.empty(M, np.int64), np.zeros(M, bool)
+        out = np.zeros((N_CHANNELS, M))
+        for _ in range(2):
+            scatter_add(out, keys, ch, lut, mark)
+            assert not mark.any()
+        np.testing.assert_allclose(out, 2 * ref, rtol=1e-12, atol=1e-12)
 
 
 def test_bad_input_is_named():

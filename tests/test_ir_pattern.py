@@ -106,6 +106,20 @@ def test_profile_saves_its_pattern_beside_it(grid_profile, tmp_path):
 def test_lookup_outside_the_map_and_bad_maps():
     pat = EmitterPattern(np.full((3, 4), 2.0), np.ones((3, 4), np.uint16), 0.01, (1.5, 1.0))
     assert pat.lookup(np.array([0.0, 5.0]), np.array([0.0, 0.0])).tolist() == [2.0, 1.0]
+    # every way off the map, non-finite directions included, reads 1; the shape is kept
+    u = np.array([[-0.03, 0.03, np.nan, np.inf], [-np.inf, 0.0, 0.0, 0.0]])
+    v = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, -0.02, 0.02, np.nan]])
+    assert pat.lookup(u, v).tolist() == [[1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]]
+    # inside, the cell of cells(): a map of distinct values, directions away from cell boundaries
+    rng = np.random.default_rng(3)
+    big = EmitterPattern(rng.uniform(0.5, 1.5, (40, 60)), np.ones((40, 60), np.uint16), 0.01, (30.2, 19.7))
+    uu, vv = rng.uniform(-0.35, 0.35, 5000), rng.uniform(-0.25, 0.25, 5000)
+    row, col = big.cells(uu, vv)
+    ok = (np.abs(uu / 0.01 + 30.2 - np.round(uu / 0.01 + 30.2)) < 0.49) & (np.abs(vv / 0.01 + 19.7 - np.round(vv / 0.01 + 19.7)) < 0.49)
+    ins = (row >= 0) & (row < 40) & (col >= 0) & (col < 60)
+    ref = np.where(ins, big.values[np.clip(row, 0, 39), np.clip(col, 0, 59)], 1.0)
+    assert ins.any() and (~ins).any()
+    np.testing.assert_array_equal(big.lookup(uu, vv)[ok], ref[ok])
     P = np.array([[0.075, 0.0, 0.5], [0.0, 0.0, np.nan]])
     assert pat.lookup_points(P, E).tolist() == [2.0, 1.0]
     with pytest.raises(CalibrationError, match="positive"):
