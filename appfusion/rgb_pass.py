@@ -447,19 +447,19 @@ class RGBPass:
         self.bin_mean = np.zeros((n, 3, self.bins), np.uint8)       # mean position in the bin, /255
         self._rng = np.random.default_rng(0)
         self.counts = np.zeros(n, np.int64)
-        self.sum_s2 = np.zeros((n, 3))
-        self.sum_sl = np.zeros((n, 3))
-        self.sum_sd = np.zeros((n, 3))
-        self.sum_s = np.zeros((n, 3))     # sum S and sum L: with D fixed per point, these and the sums
-        self.sum_l = np.zeros((n, 3))     # above are every moment the least squares of Eq. 5 needs
-        self.sum_l2 = np.zeros((n, 3))    # sum L^2: residuals of the model ladder's held-out test
+        # the per-point sums, (n, 3) each, are views of one (n, 8, 3) array, so that a frame gathers
+        # and scatters a point's 24 sums at once (one cache-friendly row, not eight scattered ones):
+        # sum S^2, SL, SD, S, L, L^2, and the diffuse weighting's sum wL, wS. sum S and sum L: with D
+        # fixed per point, these are every moment the least squares of Eq. 5 needs; sum L^2 gives the
+        # model ladder's held-out residuals
+        self._sums = np.zeros((n, 8, 3))
+        (self.sum_s2, self.sum_sl, self.sum_sd, self.sum_s, self.sum_l, self.sum_l2,
+         self.sum_wl, self.sum_ws) = (self._sums[:, j] for j in range(8))
         # diffuse weighting of rho_d (lsq): sum w, sum w L, sum w S with w = 1 / (1 + (S / (tau D))^2)
         if diffuse_tau is not None and not diffuse_tau > 0:
             raise AppFusionError(f"RGBPass: diffuse_tau must be > 0 or None, got {diffuse_tau}")
         self.diffuse_tau = None if diffuse_tau is None else float(diffuse_tau)
         self.sum_w = np.zeros(n)
-        self.sum_wl = np.zeros((n, 3))
-        self.sum_ws = np.zeros((n, 3))
         # the same S sums with each compare alpha's S (reassign_by_model), for the points whose own
         # lobe differs (the others' own sums are those): (alpha, point, channel); sum w (alpha, point)
         m = len(self.compare_alphas)
@@ -640,7 +640,7 @@ class RGBPass:
         if not finite.all():                                  # NaN/inf pixels: skipped like clipped ones
             sat = sat | ~finite
             L = np.where(finite[:, None], L, np.float32(0.0))
-        Lmax = L.max(axis=1)
+        Lmax = np.maximum(np.maximum(L[:, 0], L[:, 1]), L[:, 2])
         sat = sat | (Lmax >= self.saturated)
         wo = np.asarray(C, dtype=np.float32) - self.positions[p]
         dist = np.sqrt(np.einsum("ij,ij->i", wo, wo))
@@ -724,28 +724,35 @@ class RGBPass:
         fi = (p[:, None] * 3 + np.arange(3)) * self.bins + b
         flat_h = self.hist.reshape(-1)
         flat_m = self.bin_mean.reshape(-1)
-        n_new = flat_h[fi].astype(np.float32) + 1
-        flat_h[fi] += 1
+        h = flat_h[fi]                                         # one gather; (p, channel) distinct
+        h += 1
+        flat_h[fi] = h
+        n_new = h.astype(np.float32)
         m_old = flat_m[fi].astype(np.float32) * np.float32(1 / 255)
         m_new = m_old + (fr - m_old) / n_new
         flat_m[fi] = np.clip(m_new * 255 + self._rng.random(m_new.shape, dtype=np.float32), 0, 255).astype(np.uint8)
         top = np.iinfo(np.uint16).max - 1024
-        full = flat_h[fi] >= top
+        full = h >= top
         if full.any():
             fp = np.unique(p[full.any(axis=1)])
             self.hist[fp] = (self.hist[fp] + 1) // 2          # keep the shape (and the bin means), halve counts
         self.counts[p] += 1
-        self.sum_s2[p] += S * S
-        self.sum_sl[p] += S * L
-        self.sum_sd[p] += S * Dp
-        self.sum_s[p] += S
-        self.sum_l[p] += L
-        self.sum_l2[p] += L * L
-        if self.diffuse_tau is not None:
+        weighted = self.diffuse_tau is not None
+        u = np.empty((len(p), 8 if weighted else 6, 3))      # this frame's terms, in self._sums's order
+        np.multiply(S, S, out=u[:, 0])
+        np.multiply(S, L, out=u[:, 1])
+        np.multiply(S, Dp, out=u[:, 2])
+        u[:, 3] = S
+        u[:, 4] = L
+        np.multiply(L, L, out=u[:, 5])
+        if weighted:
             w = self._diffuse_weight(S, Dp)
             self.sum_w[p] += w
-            self.sum_wl[p] += w[:, None] * L
-            self.sum_ws[p] += w[:, None] * S
+            np.multiply(w[:, None], L, out=u[:, 6])
+            np.multiply(w[:, None], S, out=u[:, 7])
+            self._sums[p] += u
+        else:
+            self._sums[p, :6] += u
         for m, (need, Sm) in enumerate(Sc):
             q, Lq, Sq = p[need], L[need], Sm[need]
             self.cmp_s[m, q] += Sq
