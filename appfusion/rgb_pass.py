@@ -636,7 +636,7 @@ class RGBPass:
         if len(p) == 0:
             return 0
         L = np.asarray(L, dtype=np.float32)
-        finite = np.isfinite(L).all(axis=1)
+        finite = np.isfinite(L[:, 0] + L[:, 1] + L[:, 2])        # any NaN / inf channel (3x faster than .all(1))
         if not finite.all():                                  # NaN/inf pixels: skipped like clipped ones
             sat = sat | ~finite
             L = np.where(finite[:, None], L, np.float32(0.0))
@@ -708,8 +708,17 @@ class RGBPass:
 
     def _diffuse_weight(self, S: np.ndarray, Dp: np.ndarray) -> np.ndarray:
         """``w = 1 / (1 + (S / (tau D))^2)`` of the diffuse-weighted rho_d (means over RGB), (k,)."""
-        x = S.mean(axis=1) / np.maximum(Dp.mean(axis=1), np.float32(1e-12)) / np.float32(self.diffuse_tau)
-        return 1.0 / (1.0 + x.astype(np.float64) ** 2)
+        # channel sums, not .mean(axis=1) (3x slower on (k, 3)); the 1/3s cancel
+        s = S[:, 0] + S[:, 1]
+        s += S[:, 2]
+        d = Dp[:, 0] + Dp[:, 1]
+        d += Dp[:, 2]
+        np.maximum(d, np.float32(3e-12), out=d)
+        x = (s / d).astype(np.float64)
+        x *= 1.0 / self.diffuse_tau
+        x *= x
+        x += 1.0
+        return np.divide(1.0, x, out=x)
 
     def _accumulate(self, p: np.ndarray, L: np.ndarray, S: np.ndarray, Sc: list = ()) -> None:
         """Histogram, bin-mean and Eq. 8 sum updates for distinct internal points ``p``; ``Sc`` as
