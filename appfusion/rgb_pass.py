@@ -578,8 +578,9 @@ class RGBPass:
         ui = np.clip(np.rint(ur).astype(np.int64), 0, W - 1)
         vi = np.clip(np.rint(vr).astype(np.int64), 0, H - 1)
         col = rgb.reshape(-1, 3).take(vi * W + ui, axis=0)
-        sat = (col >= self.saturated).any(axis=1)
-        bad_in = ~np.isfinite(col).all(axis=1)
+        c0, c1, c2 = col[:, 0], col[:, 1], col[:, 2]            # channel-wise: reductions along the
+        sat = np.maximum(np.maximum(c0, c1), c2) >= self.saturated   # short axis are ~3x slower
+        bad_in = ~np.isfinite(c0 + c1 + c2)
         if bad_in.any():                                        # NaN pixels in the image: treat as saturated
             sat |= bad_in
             col = np.where(bad_in[:, None], 0.0, col)
@@ -660,7 +661,8 @@ class RGBPass:
         k = np.flatnonzero(keep)
         if len(k) == 0:
             return 0
-        p, L, wo, nrm = p[k], L[k], wo[k], nrm[k]
+        if len(k) < len(p):
+            p, L, wo, nrm = p[k], L[k], wo[k], nrm[k]
         sp = self._spec_point[p]
         seed = self.frames * 7919 + st["samples"]
         if sp.all():
