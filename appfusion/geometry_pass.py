@@ -427,6 +427,48 @@ class GeometryPass:
                               marker_centers=C, box=box, voxel_size=vs, spacing=spacing)
 
 
+def open_boundary_points(positions: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                         radius: float) -> np.ndarray:
+    """Which points lie within ``radius`` of the mesh's open boundary (its edges of one triangle).
+
+    On a scan that is where the object box cut the fused surface off the support plane (and the rim
+    of any hole too large to fill): the fused normals are worst there, and depth pixels of the plane
+    can register to the object's lowest points. The IR pass keeps the leaves holding such points
+    out of its Ward fits (``rim`` of :class:`appfusion.brdf_cut.BRDFCut`).
+
+    Parameters
+    ----------
+    positions : (N, 3) array
+        Points, metres.
+    vertices : (V, 3) array
+    faces : (F, 3) int array
+        The mesh, same frame.
+    radius : float
+        Metres; points within it of a boundary edge's end or middle count.
+
+    Returns
+    -------
+    (N,) bool
+        False everywhere for a closed mesh (or no mesh).
+    """
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(positions, np.float64).reshape(-1, 3)
+    V = np.asarray(vertices, np.float64).reshape(-1, 3)
+    F = np.asarray(faces, np.int64).reshape(-1, 3)
+    out = np.zeros(len(P), bool)
+    if len(F) == 0 or len(P) == 0 or not radius > 0:
+        return out
+    e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    edges, count = np.unique(e, axis=0, return_counts=True)
+    b = edges[count == 1]
+    if len(b) == 0:
+        return out
+    probes = np.concatenate([V[b[:, 0]], V[b[:, 1]], 0.5 * (V[b[:, 0]] + V[b[:, 1]])])
+    d, _ = cKDTree(probes).query(P, distance_upper_bound=float(radius))
+    return np.isfinite(d)
+
+
 def fill_small_holes(mesh: o3d.geometry.TriangleMesh, max_radius: float) -> o3d.geometry.TriangleMesh:
     """Close the mesh's holes up to ``max_radius`` metres (paper §6's hole cleaning).
 

@@ -66,6 +66,9 @@ class IRPass:
     normal_gradient : bool
         Give each sample the normal at its own place on the surface, not its registered point's
         (:func:`appfusion.points.normal_gradient`; default True; see the module docstring, step 2).
+    rim : (N,) bool array, optional
+        Points at the surface's open boundary; their leaves stay out of the Ward fits
+        (:class:`appfusion.brdf_cut.BRDFCut`).
     k : int, optional
         Number of clusters (None: automatic).
     **cut_kwargs
@@ -81,7 +84,7 @@ class IRPass:
 
     def __init__(self, positions, normals, profile, hbsab_n: int = DEFAULT_N, min_leaf: int = 64,
                  max_angle_deg: float = DEFAULT_MAX_ANGLE_DEG, max_dist: float | None = None, areas=None,
-                 k: int | None = None, normal_gradient: bool = True, **cut_kwargs):
+                 k: int | None = None, normal_gradient: bool = True, rim=None, **cut_kwargs):
         self.pattern = getattr(profile, "pattern", None)
         if "emitter" not in cut_kwargs:                    # clipped highlights are modelled with it
             if getattr(profile, "emitter_model", "") != "shifted_gamma":
@@ -91,7 +94,7 @@ class IRPass:
             else:
                 cut_kwargs["emitter"] = (profile.k, profile.theta, profile.shift)
         self.cut = BRDFCut(positions, normals, n=hbsab_n, min_leaf=min_leaf, max_angle_deg=max_angle_deg,
-                           areas=areas, k=k, **cut_kwargs)
+                           areas=areas, k=k, rim=rim, **cut_kwargs)
         self.positions = np.ascontiguousarray(self.cut.positions, dtype=np.float32)
         self.normals = np.ascontiguousarray(self.cut.normals, dtype=np.float32)
         self.profile = profile

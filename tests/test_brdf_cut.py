@@ -294,3 +294,22 @@ def test_samples_take_the_normal_at_their_own_place_on_the_surface():
         S.scan(ip, sc, poses)
         err[g] = ip.result(k=1).clusters[0].fit.alpha / a_true - 1
     assert err[False] > 0.02 and abs(err[True]) < 0.01, err
+
+
+def test_rim_leaves_stay_out_of_the_fits(two_material_scan):
+    """Leaves holding a point of the surface's open boundary (``rim``) are not interior: the clusters'
+    Ward fits leave them out, the labels do not change; a rim of the wrong shape is named."""
+    sc, ip, truth, _ = two_material_scan
+    P = ip.cut.positions
+    rim = P[:, 2] < np.percentile(P[:, 2], 10)                     # a band of the sphere
+    cut = BRDFCut(P, ip.cut.normals, min_leaf=32, rim=rim)
+    lab = truth.astype(np.int64)
+    inner = cut._interior_leaves(lab)
+    plain = BRDFCut(P, ip.cut.normals, min_leaf=32)._interior_leaves(lab)
+    rim_leaf = np.bincount(cut.tree.point_leaf, rim.astype(float), cut.tree.n_leaves) > 0
+    assert rim_leaf.any() and not inner[rim_leaf].any()
+    np.testing.assert_array_equal(inner[~rim_leaf], plain[~rim_leaf])
+    with pytest.raises(AppFusionError, match="rim must be one bool per point"):
+        BRDFCut(P, ip.cut.normals, rim=rim[:10])
+    with pytest.raises(AppFusionError, match="rim must be one bool per point"):
+        BRDFCut(P, ip.cut.normals, rim=rim.astype(int))

@@ -548,3 +548,30 @@ def test_pose_refiner_reregisters_a_frame_to_the_final_mesh():
         ref.refine(depth, K, np.eye(3))
     with pytest.raises(AppFusionError, match="non-empty mesh"):
         PoseRefiner(np.zeros((0, 3)), np.zeros((0, 3), int))
+
+
+def test_open_boundary_points_are_those_near_the_cut_rim():
+    """The points within a radius of the mesh's open boundary (a sphere cut open at the bottom, as
+    the object box cuts a scan off the plane); none on a closed mesh, none with radius 0."""
+    from appfusion.geometry_pass import open_boundary_points
+
+    mesh = o3d.geometry.TriangleMesh.create_sphere(radius=0.05, resolution=60)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(4000, 3))
+    P = 0.05 * P / np.linalg.norm(P, axis=1, keepdims=True)
+    assert not open_boundary_points(P, V, F, 0.004).any()            # closed
+    keep = V[F].mean(axis=1)[:, 2] >= -0.035
+    cut = o3d.geometry.TriangleMesh(mesh)
+    cut.remove_triangles_by_mask(~keep)
+    cut.remove_unreferenced_vertices()
+    Vc, Fc = np.asarray(cut.vertices), np.asarray(cut.triangles)
+    P = P[P[:, 2] > -0.034]
+    rim = open_boundary_points(P, Vc, Fc, 0.004)
+    z_rim = Vc[:, 2].min()                                           # the cut's height (-0.035 or so)
+    # the rim is a circle at z_rim; points within ~4 mm of it (along the sphere) are flagged
+    near = P[:, 2] < z_rim + 0.0025
+    far = P[:, 2] > z_rim + 0.006
+    assert rim[near].all() and not rim[far].any() and near.any()
+    assert not open_boundary_points(P, Vc, Fc, 0.0).any()
+    assert open_boundary_points(P, Vc, np.zeros((0, 3), int), 0.004).shape == (len(P),)

@@ -90,3 +90,24 @@ def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_p
         r.rgb.specular = np.array([True, False])
         r._rgb_resweep(half, np.r_[alphas[:1], [0.3]], np.array([False, True]), a, b, "rgb")
         assert list(r.rgb.specular) == [True, True] and r.rgb.alphas[1] == 0.3
+
+
+def test_final_refit_takes_new_lobes_where_no_rho_s_depends_on_the_old_one():
+    """After the second sweep moved points between clusters, the IR lobes are fitted once more: a
+    diffuse cluster takes its new alpha, a Ward cluster only within 1 % of the alpha its rho_s was
+    measured with (beyond, it keeps that one and says so)."""
+    r = ScanRunner.__new__(ScanRunner)
+    notes = []
+    r._note = notes.append
+    alpha = np.array([0.060, 0.330, 0.200], np.float32)
+    sigma = np.array([0.001, 0.014, 0.010], np.float32)
+
+    def refit(labels, a, s, what=""):
+        return np.array([0.0603, 0.346, 0.230], np.float32), np.array([0.0009, 0.010, 0.011], np.float32)
+
+    r._refit_ir = refit
+    a, s = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    np.testing.assert_allclose(a, [0.0603, 0.346, 0.200], rtol=1e-6)
+    np.testing.assert_allclose(s, [0.0009, 0.010, 0.010], rtol=1e-6)
+    assert len(notes) == 1 and "cluster 2 keeps alpha 0.200" in notes[0]
+    assert alpha[1] == np.float32(0.330)                            # the caller's arrays are not changed
