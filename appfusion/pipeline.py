@@ -1357,8 +1357,10 @@ class ScanRunner:
         if snap.hbsabs:
             figs["HBSAB of each cluster with its fitted Ward lobe (§5.1)"] = fig_hbsabs(
                 [h for h in snap.hbsabs if h is not None], snap.hbsab_fits or [], rep / "hbsabs.png")
-        if snap.history:
-            figs["Convergence of alpha and rho_s over frames"] = fig_convergence(snap.history, rep / "convergence.png")
+        if snap.history or len(res.alpha):                  # resumed from checkpoints: the markers alone
+            figs["Convergence of alpha and rho_s over frames (lines: the live sweep; markers: the exported "
+                 "clusters' values, after any colour split and second sweep)"] = fig_convergence(
+                snap.history, rep / "convergence.png", final={"alpha": np.asarray(res.alpha), "rho_s": np.asarray(res.rho_s)})
         if self.env is not None:
             figs["Environment map and coverage (§4.3)"] = fig_envmap(self.env.radiance, rep / "envmap.png",
                                                                     self.env.known)

@@ -79,21 +79,40 @@ def fig_envmap(env: np.ndarray, path: Path, coverage: np.ndarray | None = None) 
     return path
 
 
-def fig_convergence(history: dict[str, list], path: Path) -> Path:
-    """alpha and rho_s per cluster against the number of frames used."""
+def fig_convergence(history: dict[str, list], path: Path, final: dict | None = None) -> Path:
+    """alpha and rho_s per cluster against the number of frames used.
+
+    ``final``: the exported ``{"alpha": (k,), "rho_s": (k,) or (k, 3)}``, drawn as markers after the
+    last frame. The running estimates are those of the live sweep; a scan whose colour pass split a
+    cluster and swept again ends with other clusters and values, which only the markers show."""
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
     for key, ax, label in (("alpha", axes[0], "Ward alpha"), ("rho_s", axes[1], "rho_s (mean of RGB)")):
         h = history.get(key) or []
+        x_end = 1.0
         if h:
             frames = [f for f, _ in h]
+            x_end = float(max(frames))
             vals = np.array([np.atleast_1d(np.asarray(v, float)) for _, v in h], dtype=object)
             k = max(len(v) for v in vals)
             for c in range(k):
                 ys = [np.asarray(v, float).reshape(len(v), -1).mean(axis=-1)[c] if len(v) > c else np.nan
                       for v in vals]
-                ax.plot(frames, ys, label=f"cluster {c}")
+                ax.plot(frames, ys, label=f"cluster {c} (running)")
+        fv = None if final is None else final.get(key)
+        if fv is not None and len(np.atleast_1d(fv)):
+            fv = np.asarray(fv, float)
+            fv = fv.reshape(len(fv), -1).mean(axis=-1)
+            for c, y in enumerate(fv):
+                ax.plot([x_end * 1.04], [y], marker="o", linestyle="none", color=f"C{c}",
+                        label=f"cluster {c} exported: {y:.3g}")
+        if h or fv is not None:
             ax.legend(fontsize=8)
+        if not h:
+            ax.set_xticks([])                                # a resumed scan has no running estimates
+        if key == "alpha" and ax.lines and all(np.nanmin(ln.get_ydata()) > 0 for ln in ax.lines
+                                               if np.isfinite(np.asarray(ln.get_ydata(), float)).any()):
+            ax.set_yscale("log")                             # roughnesses span decades (0.06 and 0.35)
         ax.set_xlabel("frames used")
         ax.set_title(label)
     fig.tight_layout()

@@ -74,3 +74,24 @@ def test_export_writes_loadable_glb_obj_ply(tmp_path):
     for k in ("rho_d", "rho_s", "alpha", "clusters"):
         assert (tmp_path / f"{k}.png").stat().st_size > 0
     assert (tmp_path / "rho_d.exr").exists()
+
+
+def test_convergence_figure_marks_the_exported_values(tmp_path):
+    """The report's convergence figure: the live sweep's running estimates as lines, the exported
+    clusters (after a colour split, more of them than the running estimates had) as markers."""
+    from PIL import Image
+
+    from appfusion.report import fig_convergence
+
+    hist = {"alpha": [(15, [0.048]), (30, [0.049]), (60, [0.051])],
+            "rho_s": [(10, [[0.33, 0.33, 0.34]]), (20, [[0.335, 0.336, 0.337]])]}
+    final = {"alpha": np.array([0.062, 0.35]), "rho_s": np.array([[0.357] * 3, [0.0] * 3])}
+    p = fig_convergence(hist, tmp_path / "c.png", final=final)
+    a = np.asarray(Image.open(p).convert("RGB")).astype(int)
+    assert a.shape[0] > 100 and a.shape[1] > 300
+    # markers in the second cluster's colour (matplotlib C1, orange) appear only with the final values
+    orange = (np.abs(a - np.array([255, 127, 14])).sum(-1) < 60).sum()
+    q = fig_convergence(hist, tmp_path / "d.png")
+    b = np.asarray(Image.open(q).convert("RGB")).astype(int)
+    assert orange > 20 and (np.abs(b - np.array([255, 127, 14])).sum(-1) < 60).sum() == 0
+    fig_convergence({}, tmp_path / "e.png", final=final)             # no history: markers only
