@@ -38,7 +38,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: written by an older engine (``out_dir/state``) are recomputed instead of reused (3: 3 mm voxels, the
 #: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods;
 #: 5: small holes of the fused mesh closed, the RGB pass's second sweep; 6: IR samples with their own
-#: normals and poses re-registered to the final mesh; 7: filled holes wound like the mesh around them)
+#: normals and poses re-registered to the final mesh; 7: filled holes wound like the mesh around them;
+#: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters)
 CHECKPOINT_VERSION = 8
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
@@ -985,6 +986,8 @@ class ScanRunner:
         only within 1 % of the swept alpha, since its rho_s was measured with the double products of
         that alpha (beyond, it keeps the swept one and the scan log says so).
         """
+        if getattr(self, "ir", None) is None:                # reused IR checkpoint: _refit_ir said so already
+            return alpha, sigma
         new, new_sigma = self._refit_ir(labels, alpha, sigma, what="the final clusters")
         alpha, sigma = alpha.copy(), sigma.copy()
         for c in range(min(len(alpha), len(new))):

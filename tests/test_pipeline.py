@@ -99,6 +99,10 @@ def test_final_refit_takes_new_lobes_where_no_rho_s_depends_on_the_old_one():
     r = ScanRunner.__new__(ScanRunner)
     notes = []
     r._note = notes.append
+    r.ir = None                                                     # an IR stage reused from a checkpoint
+    a0 = np.array([0.06, 0.33], np.float32)
+    assert r._refit_ir_final(np.zeros(5, np.int32), a0, a0, ["ward", "diffuse"])[0] is a0 and not notes
+    r.ir = object()                                                 # the IR pass's buffers are in memory
     alpha = np.array([0.060, 0.330, 0.200], np.float32)
     sigma = np.array([0.001, 0.014, 0.010], np.float32)
 
