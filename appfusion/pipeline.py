@@ -1017,7 +1017,12 @@ class ScanRunner:
             return alpha, sigma
         alpha, sigma = alpha.copy(), sigma.copy()
         fitted = []
-        for c in self.ir.fit_clusters(labels)[:len(alpha)]:
+        infos = self.ir.fit_clusters(labels)[:len(alpha)]
+        # the GUI and the report show these clusters' buffers and lobes from now on, not the IR's own
+        hb = [c.hbsab.value[0].copy() if c.hbsab is not None else None for c in infos]
+        self._publish(force=True, hbsabs=hb, hbsab_fits=[self._ward_image(c) if h is not None else None
+                                                         for c, h in zip(infos, hb)])
+        for c in infos:
             f = c.fit
             if f is not None and not f.at_bound and np.isfinite(f.alpha):
                 alpha[c.label] = f.alpha
