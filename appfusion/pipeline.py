@@ -998,6 +998,7 @@ class ScanRunner:
                            f"not the final clusters' {new[c]:.3f}")
                 continue
             alpha[c], sigma[c] = new[c], new_sigma[c]
+        self._publish(force=True, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32))
         return alpha, sigma
 
     def _refit_ir(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
@@ -1018,10 +1019,6 @@ class ScanRunner:
         alpha, sigma = alpha.copy(), sigma.copy()
         fitted = []
         infos = self.ir.fit_clusters(labels)[:len(alpha)]
-        # the GUI and the report show these clusters' buffers and lobes from now on, not the IR's own
-        hb = [c.hbsab.value[0].copy() if c.hbsab is not None else None for c in infos]
-        self._publish(force=True, hbsabs=hb, hbsab_fits=[self._ward_image(c) if h is not None else None
-                                                         for c, h in zip(infos, hb)])
         for c in infos:
             f = c.fit
             if f is not None and not f.at_bound and np.isfinite(f.alpha):
@@ -1030,6 +1027,10 @@ class ScanRunner:
                 fitted.append(f"cluster {c.label} alpha {f.alpha:.3f}")
         if fitted:
             self._note(f"rgb: IR lobes refitted to {what}: " + ", ".join(fitted))
+        # the GUI and the report show these clusters' buffers, lobes and alphas from now on, not the IR's
+        hb = [c.hbsab.value[0].copy() if c.hbsab is not None else None for c in infos]
+        self._publish(force=True, hbsabs=hb, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32),
+                      hbsab_fits=[self._ward_image(c) if h is not None else None for c, h in zip(infos, hb)])
         return alpha, sigma
 
     # -- labels and painting ---------------------------------------------------------------------------

@@ -103,6 +103,8 @@ def test_final_refit_takes_new_lobes_where_no_rho_s_depends_on_the_old_one():
     a0 = np.array([0.06, 0.33], np.float32)
     assert r._refit_ir_final(np.zeros(5, np.int32), a0, a0, ["ward", "diffuse"])[0] is a0 and not notes
     r.ir = object()                                                 # the IR pass's buffers are in memory
+    published = {}
+    r._publish = lambda force=False, **kw: published.update(kw)
     alpha = np.array([0.060, 0.330, 0.200], np.float32)
     sigma = np.array([0.001, 0.014, 0.010], np.float32)
 
@@ -115,3 +117,4 @@ def test_final_refit_takes_new_lobes_where_no_rho_s_depends_on_the_old_one():
     np.testing.assert_allclose(s, [0.0009, 0.010, 0.010], rtol=1e-6)
     assert len(notes) == 1 and "cluster 2 keeps alpha 0.200" in notes[0]
     assert alpha[1] == np.float32(0.330)                            # the caller's arrays are not changed
+    np.testing.assert_allclose(published["alpha"], a)               # what the GUI shows is what is exported
