@@ -39,7 +39,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: near-field plane and diffuse weighting in the RGB pass, the colour split's voxel neighbourhoods;
 #: 5: small holes of the fused mesh closed, the RGB pass's second sweep; 6: IR samples with their own
 #: normals and poses re-registered to the final mesh; 7: filled holes wound like the mesh around them;
-#: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters)
+#: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters
+#: and a third colour sweep when a measured lobe moved)
 CHECKPOINT_VERSION = 8
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
@@ -846,7 +847,11 @@ class ScanRunner:
             alpha, sigma = self._refit_ir(labels, alpha, sigma)
             if self.config.rgb_resweep and not np.allclose(alpha, self.rgb.alphas, rtol=1e-3):
                 r, labels = self._rgb_resweep(labels, alpha, np.isfinite(sigma), start, stop, pass_name)
-                alpha, sigma = self._refit_ir_final(labels, alpha, sigma, r.model)
+                alpha2, sigma2, again = self._refit_ir_final(labels, alpha, sigma, r.model)
+                if again:                                   # a measured lobe moved: rho_s with its new S
+                    r, labels = self._rgb_resweep(labels, alpha2, np.isfinite(sigma2), start, stop, pass_name,
+                                                  reassign=False)
+                alpha, sigma = alpha2, sigma2
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
                             "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
@@ -931,7 +936,7 @@ class ScanRunner:
         return used
 
     def _rgb_resweep(self, labels: np.ndarray, alpha: np.ndarray, refitted: np.ndarray, start: int, stop: int,
-                     pass_name: str):
+                     pass_name: str, reassign: bool = True):
         """Eq. 5 again over the RGB frames, with the clusters and lobes the first sweep settled.
 
         The first sweep's double products S were built with the IR clusters' alphas. Once the colour
@@ -947,25 +952,27 @@ class ScanRunner:
         With ``rgb_split``, the lobes the first sweep kept are measured on every point too, and each
         point then goes to the cluster whose model fits its neighbourhood best
         (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`). Returns the new :class:`RGBResult`
-        and labels (caller order).
+        and labels (caller order). ``reassign=False``: the third sweep of :meth:`_refit_ir_final`,
+        with the final clusters kept as they are.
         """
         from .rgb_pass import RGBPass
 
         P, N = self.points
         first = self.rgb
-        self._note("rgb: second sweep with the refitted lobes (alpha "
+        self._note(("rgb: second sweep with the refitted lobes (alpha " if reassign else
+                    "rgb: third sweep with the lobes of the final clusters (alpha ")
                    + ", ".join(f"{a:.3f}" for a in alpha) + ")")
         specular = np.asarray(first.specular, bool) | np.asarray(refitted, bool)
         # the lobes the first sweep measured (its model ladder kept them) are also measured on every
         # other point, so that each point can go to the model that explains it best
         kept = [c for c in range(min(len(alpha), len(first.model))) if first.model[c] == "ward" and specular[c]]
-        compare = np.unique(np.asarray(alpha, np.float64)[kept]) if self.config.rgb_split else None
+        compare = np.unique(np.asarray(alpha, np.float64)[kept]) if self.config.rgb_split and reassign else None
         rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables,
                       near_field=first.near_field, near_field_samples=first.near_field_samples,
                       compare_alphas=compare, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
         self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
-        self.timings["rgb-resweep"] = self.timings.pop("rgb", {})
+        self.timings["rgb-resweep" if reassign else "rgb-third-sweep"] = self.timings.pop("rgb", {})
         if t_first is not None:
             self.timings["rgb"] = t_first
         self.rgb = rgb
@@ -974,32 +981,37 @@ class ScanRunner:
             self._note(f"rgb: {moved} points moved to the cluster whose colour model fits their neighbourhood best")
         return rgb.result(), rgb.labels_caller_order()
 
-    def _refit_ir_final(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray, model) -> tuple[np.ndarray, np.ndarray]:
-        """The IR lobes fitted once more, to the clusters the second sweep left.
+    def _refit_ir_final(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
+                        model) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The IR lobes fitted once more, to the clusters the second sweep left; returns alpha, sigma
+        and whether a third sweep is needed.
 
         The second sweep moves the points whose colour fits the other cluster's model better
         (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`: 3.6-4.6k of 100k on the demo and seed 1),
         mostly along the seam, where the first sweep's split had put paint into the label's cluster.
         The label's lobe (Ward 0.35, 5 % above its diffuse level in the IR) is the one they bias:
-        fitted to the split's clusters seed 1 gave 0.332 (-5.1 %), to the final ones 0.346. A
-        cluster whose model is diffuse (no S in its sums) takes the new fit; a Ward cluster takes it
-        only within 1 % of the swept alpha, since its rho_s was measured with the double products of
-        that alpha (beyond, it keeps the swept one and the scan log says so).
+        fitted to the split's clusters seed 1 gave 0.332 (-5.1 %), to the final ones 0.346. Every
+        cluster takes its new fit. A cluster whose colour model is Ward had its rho_s measured with the
+        double products of the swept alpha: if that alpha moved by more than 1 %, the RGB frames are
+        swept a third time with the new one (the caller; no reassignment). A diffuse cluster has no S
+        in its sums and needs none.
         """
         if getattr(self, "ir", None) is None:                # reused IR checkpoint: _refit_ir said so already
-            return alpha, sigma
+            return alpha, sigma, False
         new, new_sigma = self._refit_ir(labels, alpha, sigma, what="the final clusters")
         alpha, sigma = alpha.copy(), sigma.copy()
+        again = []
         for c in range(min(len(alpha), len(new))):
             if new[c] == alpha[c]:
                 continue
             if c < len(model) and model[c] == "ward" and abs(new[c] / alpha[c] - 1.0) > 0.01:
-                self._note(f"rgb: cluster {c} keeps alpha {alpha[c]:.3f} (its rho_s was measured with it), "
-                           f"not the final clusters' {new[c]:.3f}")
-                continue
+                again.append(f"cluster {c} {alpha[c]:.3f} -> {new[c]:.3f}")
             alpha[c], sigma[c] = new[c], new_sigma[c]
+        if again:
+            self._note("rgb: the final clusters' lobes moved by more than 1 % (" + ", ".join(again)
+                       + "): their rho_s is measured once more")
         self._publish(force=True, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32))
-        return alpha, sigma
+        return alpha, sigma, bool(again)
 
     def _refit_ir(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
                   what: str = "the colour pass's clusters") -> tuple[np.ndarray, np.ndarray]:

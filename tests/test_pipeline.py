@@ -92,29 +92,31 @@ def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_p
         assert list(r.rgb.specular) == [True, True] and r.rgb.alphas[1] == 0.3
 
 
-def test_final_refit_takes_new_lobes_where_no_rho_s_depends_on_the_old_one():
-    """After the second sweep moved points between clusters, the IR lobes are fitted once more: a
-    diffuse cluster takes its new alpha, a Ward cluster only within 1 % of the alpha its rho_s was
-    measured with (beyond, it keeps that one and says so)."""
+def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_moved():
+    """After the second sweep moved points between clusters, the IR lobes are fitted once more: every
+    cluster takes its new alpha; a Ward cluster whose alpha moved by more than 1 % (its rho_s was
+    measured with the old one) asks for a third sweep. Nothing happens without the IR pass's buffers."""
     r = ScanRunner.__new__(ScanRunner)
     notes = []
     r._note = notes.append
     r.ir = None                                                     # an IR stage reused from a checkpoint
     a0 = np.array([0.06, 0.33], np.float32)
-    assert r._refit_ir_final(np.zeros(5, np.int32), a0, a0, ["ward", "diffuse"])[0] is a0 and not notes
+    out = r._refit_ir_final(np.zeros(5, np.int32), a0, a0, ["ward", "diffuse"])
+    assert out[0] is a0 and out[2] is False and not notes
     r.ir = object()                                                 # the IR pass's buffers are in memory
     published = {}
     r._publish = lambda force=False, **kw: published.update(kw)
     alpha = np.array([0.060, 0.330, 0.200], np.float32)
     sigma = np.array([0.001, 0.014, 0.010], np.float32)
-
-    def refit(labels, a, s, what=""):
-        return np.array([0.0603, 0.346, 0.230], np.float32), np.array([0.0009, 0.010, 0.011], np.float32)
-
-    r._refit_ir = refit
-    a, s = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    new = [np.array([0.0603, 0.346, 0.200], np.float32), np.array([0.0009, 0.010, 0.010], np.float32)]
+    r._refit_ir = lambda labels, a, s, what="": (new[0], new[1])
+    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
     np.testing.assert_allclose(a, [0.0603, 0.346, 0.200], rtol=1e-6)
     np.testing.assert_allclose(s, [0.0009, 0.010, 0.010], rtol=1e-6)
-    assert len(notes) == 1 and "cluster 2 keeps alpha 0.200" in notes[0]
+    assert again is False and not notes                              # +0.5 % on a Ward cluster: no sweep
     assert alpha[1] == np.float32(0.330)                            # the caller's arrays are not changed
     np.testing.assert_allclose(published["alpha"], a)               # what the GUI shows is what is exported
+    new[0] = np.array([0.0603, 0.346, 0.230], np.float32)           # a Ward cluster moved by 15 %
+    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    assert again is True and a[2] == np.float32(0.230)
+    assert len(notes) == 1 and "cluster 2 0.200 -> 0.230" in notes[0]
