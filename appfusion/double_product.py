@@ -658,11 +658,8 @@ class AlphaTable:
         rw = np.stack([(1 - au) * (1 - av), au * (1 - av), (1 - au) * av, au * av], axis=1)
         k16 = (rofs[:, :, None] + kofs[:, None, :]).reshape(-1, 16)
         w16 = (rw[:, :, None] * kw[:, None, :]).reshape(-1, 1, 16)
-        if self.values.dtype == np.float16:
-            # float16 -> float32 through a 65536-entry table (L2-resident): 25 % faster than astype
-            vals = _F16_TO_F32.take(self.values.view(np.uint16).reshape(-1, 3).take(k16, axis=0))   # (P, 16, 3)
-        else:
-            vals = self.values.reshape(-1, 3).take(k16, axis=0).astype(np.float32)
+        # float16 -> float32 through a 65536-entry table (L2-resident): 25 % faster than astype
+        vals = _F16_TO_F32.take(self.values.view(np.uint16).reshape(-1, 3).take(k16, axis=0))   # (P, 16, 3)
         acc = np.matmul(w16, vals)[:, 0]
         fac = np.where(ok, np.float32(self.scale) / np.sqrt(np.where(ok, co, np.float32(1.0))), np.float32(0.0))
         return acc * fac[:, None]

@@ -246,10 +246,8 @@ def scatter_add(target: np.ndarray, keys: np.ndarray, channels: np.ndarray, lut:
     for c in range(channels.shape[0]):          # a handful of channels, not a loop over samples
         row = channels[c]
         if c == CH_SAT:                          # mostly zero: sum only the saturated samples
-            if not row.any():
-                continue
-            nz = np.flatnonzero(row)
-            if len(nz):
+            if row.any():
+                nz = np.flatnonzero(row)
                 agg[c] = np.bincount(inv[nz], row[nz], k)
             continue
         agg[c] = np.bincount(inv, row, k)

@@ -996,7 +996,7 @@ class ScanRunner:
         swept a third time with the new one (the caller; no reassignment). A diffuse cluster has no S
         in its sums and needs none.
         """
-        if getattr(self, "ir", None) is None:                # reused IR checkpoint: _refit_ir said so already
+        if self.ir is None:                                  # reused IR checkpoint: _refit_ir said so already
             return alpha, sigma, False
         new, new_sigma = self._refit_ir(labels, alpha, sigma, what="the final clusters")
         alpha, sigma = alpha.copy(), sigma.copy()
