@@ -578,15 +578,15 @@ class RGBPass:
         ui = np.clip(np.rint(ur).astype(np.int64), 0, W - 1)
         vi = np.clip(np.rint(vr).astype(np.int64), 0, H - 1)
         col = rgb.reshape(-1, 3).take(vi * W + ui, axis=0)
+        C = (T @ invert_pose(E))[:3, 3]                      # RGB camera centre, world
+        if self.registration == "points":                    # one pixel per point already: _add skips
+            return self._add(pts, col, C, np.zeros(len(pts), bool), unique=True)   # clipped / NaN ones
         c0, c1, c2 = col[:, 0], col[:, 1], col[:, 2]            # channel-wise: reductions along the
         sat = np.maximum(np.maximum(c0, c1), c2) >= self.saturated   # short axis are ~3x slower
         bad_in = ~np.isfinite(c0 + c1 + c2)
         if bad_in.any():                                        # NaN pixels in the image: treat as saturated
             sat |= bad_in
             col = np.where(bad_in[:, None], 0.0, col)
-        C = (T @ invert_pose(E))[:3, 3]                      # RGB camera centre, world
-        if self.registration == "points":                    # one pixel per point already
-            return self._add(pts, col, C, sat, unique=True)
         # one sample per point and frame: mean of its pixels; saturated if any pixel is
         n = len(self.positions)
         cnt = np.bincount(pts, minlength=n)
