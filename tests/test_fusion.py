@@ -190,16 +190,17 @@ def test_downsample_depth_block_means():
     d[rng.random(d.shape) < 0.3] = np.nan
     d[10:14, 10:14] = 0.5                                     # a discontinuity inside some blocks
     d[11, 12] = 1.0
-    out = downsample_depth(d, 2)
     b = d.reshape(24, 2, 32, 2)
     valid = np.isfinite(b)
     n = valid.sum((1, 3))
     mean = np.where(valid, b, 0).sum((1, 3)) / np.maximum(n, 1)
     jump = np.where(valid, b, -1).max((1, 3)) - np.where(valid, b, 9).min((1, 3))
-    expect = np.where((2 * n >= 4) & (jump <= 0.03), mean, np.nan)
-    assert np.array_equal(np.isnan(out), np.isnan(expect))
-    assert np.nanmax(np.abs(out - expect)) < 1e-6
-    assert np.isnan(out[5, 6])                                # the block with the 0.5 / 1.0 jump
+    for min_valid, need in ((0.5, 2), (1.0, 4)):              # default 1.0: complete blocks only
+        out = downsample_depth(d, 2, min_valid=min_valid) if min_valid != 1.0 else downsample_depth(d, 2)
+        expect = np.where((n >= need) & (jump <= 0.03), mean, np.nan)
+        assert np.array_equal(np.isnan(out), np.isnan(expect))
+        assert np.nanmax(np.abs(out - expect)) < 1e-6
+        assert np.isnan(out[5, 6])                            # the block with the 0.5 / 1.0 jump
 
 
 def test_pose_helpers():
