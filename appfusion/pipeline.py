@@ -40,8 +40,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: 5: small holes of the fused mesh closed, the RGB pass's second sweep; 6: IR samples with their own
 #: normals and poses re-registered to the final mesh; 7: filled holes wound like the mesh around them;
 #: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters
-#: and a third colour sweep when a measured lobe moved)
-CHECKPOINT_VERSION = 8
+#: and a third colour sweep when a measured lobe moved; 9: complete depth blocks only and marker anchors
+#: weighted 3 in tracking)
+CHECKPOINT_VERSION = 9
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
