@@ -711,25 +711,27 @@ class ScanRunner:
 
     def _stage_ir(self, start: int, stop: int) -> None:
         """§5.1-5.2: IR frames of the geometry pass into the BRDF cut; clusters and Ward fits."""
-        from .ir_pass import IRPass
 
         if self._stage_done("ir"):
             self._ir_result = self._load_npz("ir")
+            leaf = self._ir_result.pop("leaf_hbsab", None)
             self._note("ir: reusing the checkpointed clusters")
             self._publish(force=True, labels=self._ir_result["labels"], alpha=self._ir_result["alpha"])
+            if leaf is not None and self.ir_profile is not None and self.points is not None:
+                # the BRDF cut's leaf buffers come back, so that the colour pass can refit the lobes
+                # of its clusters as in an uninterrupted scan (the tree is rebuilt from the points)
+                ir = self._new_ir_pass()
+                if ir.cut.leaves.data.shape == leaf.shape:
+                    ir.cut.leaves.data[...] = leaf
+                    self.ir = ir
+                else:
+                    self._note(f"ir: the checkpoint's leaf buffers {leaf.shape} do not fit the BRDF cut "
+                               f"rebuilt from the points {ir.cut.leaves.data.shape}: the lobes are not refitted")
             return
         if self.ir_profile is None:
             raise PassMissingError("the IR pass needs an IR profile: record an ir-calibration pass or give "
                                    "--ir-profile")
-        P, N = self.points
-        rim = None
-        if self.config.ir_rim_m > 0 and self.mesh is not None:
-            from .geometry_pass import open_boundary_points
-
-            rim = open_boundary_points(P, self.mesh[0], self.mesh[1], self.config.ir_rim_m)
-        self.ir = IRPass(P, N, self.ir_profile, hbsab_n=self.config.hbsab_n, k=self.config.k_clusters, rim=rim)
-        for i, lab in self._painted.items():
-            self.ir.set_labels([i], lab)
+        self.ir = self._new_ir_pass()
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}
         emitter = meta.get("emitter_position_m")
         self._publish(force=True, stage="ir", guidance=GUIDANCE["ir"])
@@ -749,10 +751,27 @@ class ScanRunner:
         res = self.ir.result(fit=True)
         self._publish_ir(res, used, force=True)
         self._ir_result = self._ir_arrays(res)
-        self._save_npz("ir", **self._ir_result)
+        # the leaf HBSABs too (constant size: leaves x channels x texels), for a resumed scan's refits
+        self._save_npz("ir", **self._ir_result, leaf_hbsab=self.ir.cut.leaves.data)
         self._mark_done("ir", {"frames": used, "k": res.k, "k_auto": res.k_auto, "notes": res.notes})
         al = ", ".join(f"{a:.3f}" for a in self._ir_result["alpha"])
         self._note(f"ir: {res.k} specular cluster(s){' (automatic k)' if res.k_auto else ''}, alpha = {al}")
+
+    def _new_ir_pass(self):
+        """An empty IR pass over the sampled points (its BRDF-cut tree is a function of them and the
+        config), with the surface's open boundary marked and the painted labels applied."""
+        from .ir_pass import IRPass
+
+        P, N = self.points
+        rim = None
+        if self.config.ir_rim_m > 0 and self.mesh is not None:
+            from .geometry_pass import open_boundary_points
+
+            rim = open_boundary_points(P, self.mesh[0], self.mesh[1], self.config.ir_rim_m)
+        ir = IRPass(P, N, self.ir_profile, hbsab_n=self.config.hbsab_n, k=self.config.k_clusters, rim=rim)
+        for i, lab in self._painted.items():
+            ir.set_labels([i], lab)
+        return ir
 
     def _refined_pose(self, frame: Frame, pose: np.ndarray) -> np.ndarray:
         """A tracked pose re-registered to the final mesh (``refine_poses``), once per frame index;
@@ -1022,12 +1041,12 @@ class ScanRunner:
         paint's cluster) dilutes the cluster's lobe: on the demo the one IR cluster fitted alpha 0.051,
         while the paint's and the label's leaves fitted alone give 0.066 and 0.345 (truth 0.06 and
         0.35). Returns alpha and alpha_sigma per cluster; a cluster without a fit (or at a bound)
-        keeps the given alpha. Without the IR pass's buffers (its stage was reused from a checkpoint)
+        keeps the given alpha. Without the IR pass's buffers (its stage reused from an older checkpoint)
         nothing is refitted, and the scan log says so.
         """
         if self.ir is None:
             self._note("rgb: the IR clusters' lobes were not refitted to the colour pass's clusters (the IR "
-                       "pass was reused from a checkpoint, which keeps no HBSABs)")
+                       "pass was reused from a checkpoint, without the leaf HBSABs: written by an older engine)")
             return alpha, sigma
         alpha, sigma = alpha.copy(), sigma.copy()
         fitted = []

@@ -42,6 +42,32 @@ def test_a_scan_stopped_midway_resumes_from_its_checkpoints(kinect_sphere, tmp_p
     assert json.loads(key)["engine"] == CHECKPOINT_VERSION
 
 
+def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere, tmp_path):
+    """The IR checkpoint holds the BRDF cut's leaf HBSABs: a scan resumed after the IR stage rebuilds
+    the cut from the points, takes the buffers back and refits the colour pass's clusters from them
+    (before session 9 it could not, and a split-off cluster kept the IR cluster's alpha)."""
+    out = tmp_path / "resumed"
+    r1, _ = _run(kinect_sphere, out, stop_at="rgb")          # stopped as the colour stage began
+    state = out / "state"
+    assert (state / "ir.done").exists() and not (state / "rgb.done").exists()
+    with np.load(state / "ir.npz") as z:
+        assert np.array_equal(z["leaf_hbsab"], r1.ir.cut.leaves.data)
+    r2, res = _run(kinect_sphere, out)
+    assert any("ir: reusing the checkpointed clusters" in m for m in r2.messages)
+    assert r2.ir is not None and r2.ir.cut.leaves.data.shape == r1.ir.cut.leaves.data.shape
+    assert np.array_equal(r2.ir.cut.tree.point_leaf, r1.ir.cut.tree.point_leaf)
+    assert not any("not refitted" in m for m in r2.messages)
+    assert (state / "rgb.done").exists() and np.isfinite(res.alpha).all()
+    # a checkpoint without the buffers (an older engine's layout) still resumes, and says what it lost
+    with np.load(state / "ir.npz") as z:
+        arrays = {k: z[k] for k in z.files if k != "leaf_hbsab"}
+    np.savez_compressed(state / "ir.npz", **arrays)
+    for f in ("rgb.done", "rgb.npz"):
+        (state / f).unlink(missing_ok=True)
+    r3, res3 = _run(kinect_sphere, out)
+    assert r3.ir is None and np.isfinite(res3.alpha).all()
+
+
 def test_checkpoints_of_another_configuration_are_recomputed(kinect_sphere, tmp_path):
     out = tmp_path / "scan"
     _run(kinect_sphere, out)
