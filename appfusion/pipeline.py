@@ -499,9 +499,22 @@ class ScanRunner:
             if not ok:
                 self._note(f"{stage}: the checkpoint in {self.state_dir} was made from another recording, "
                            "configuration or engine version: recomputing")
+            elif (self.state_dir / f"{stage}.npz").exists():
+                # a truncated or corrupt array file (a disk that filled, a copy cut short) is a missing
+                # checkpoint, not a crash: every array is read (zip CRCs checked) and kept for the stage
+                try:
+                    self._npz_cache = {stage: self._read_npz(stage)}
+                except Exception as e:  # noqa: BLE001 - numpy/zipfile raise many types for a bad file
+                    ok = False
+                    self._unreadable(stage, self.state_dir / f"{stage}.npz", e)
         if not ok:
             self._recomputing = True
         return ok
+
+    def _unreadable(self, stage: str, path, e: Exception) -> None:
+        """A checkpoint file that does not load: the stage and every stage after it are recomputed."""
+        self._note(f"{stage}: the checkpoint {path} is unreadable ({type(e).__name__}: {e}): recomputing")
+        self._recomputing = True
 
     def _mark_done(self, stage: str, info: dict | None = None) -> None:
         self.state_dir.mkdir(parents=True, exist_ok=True)
@@ -516,9 +529,15 @@ class ScanRunner:
         np.savez_compressed(tmp, **arrays)
         os.replace(tmp, self.state_dir / f"{name}.npz")
 
-    def _load_npz(self, name: str) -> dict[str, np.ndarray]:
+    def _read_npz(self, name: str) -> dict[str, np.ndarray]:
         with np.load(self.state_dir / f"{name}.npz", allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
+
+    def _load_npz(self, name: str) -> dict[str, np.ndarray]:
+        cache = getattr(self, "_npz_cache", None) or {}
+        if name in cache:
+            return self._npz_cache.pop(name)
+        return self._read_npz(name)
 
     # -- frames -------------------------------------------------------------------------------------
     def _frames(self, start: int, stop: int, stage: str):
@@ -578,9 +597,13 @@ class ScanRunner:
 
         path = self.state_dir / "ir_profile.json"
         if self._stage_done("ir-calibration") and path.exists():
-            self.ir_profile = IRProfile.load(path)
-            self._note("ir-calibration: reusing the checkpointed IR profile")
-            return
+            try:
+                self.ir_profile = IRProfile.load(path)
+            except Exception as e:  # noqa: BLE001 - a corrupt file: recompute the stage
+                self._unreadable("ir-calibration", path, e)
+            else:
+                self._note("ir-calibration: reusing the checkpointed IR profile")
+                return
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}
         emitter = meta.get("emitter_position_m", (0.075, 0.0, 0.0))
         self._publish(force=True, stage="ir-calibration", guidance=GUIDANCE["ir-calibration"])
@@ -612,9 +635,13 @@ class ScanRunner:
 
         path = self.state_dir / "envmap.npz"
         if self._stage_done("environment") and path.exists():
-            self.env = EnvMap.load(path)
-            self._note("environment: reusing the checkpointed environment map")
-            return
+            try:
+                self.env = EnvMap.load(path)
+            except Exception as e:  # noqa: BLE001 - a corrupt file: recompute the stage
+                self._unreadable("environment", path, e)
+            else:
+                self._note("environment: reusing the checkpointed environment map")
+                return
         cfg = self.config
         geo = _Geometry(self.source.meta, self.config, surface=False)      # tracks only
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}

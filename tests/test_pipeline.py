@@ -68,6 +68,26 @@ def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere,
     assert r3.ir is None and np.isfinite(res3.alpha).all()
 
 
+def test_unreadable_checkpoints_are_recomputed_not_fatal(kinect_sphere, tmp_path):
+    """A truncated checkpoint file (a full disk, a copy cut short) is a missing checkpoint: the scan
+    says which file it could not read and recomputes that stage and the ones after it."""
+    out = tmp_path / "scan"
+    _run(kinect_sphere, out)
+    state = out / "state"
+    files = [f for f in ("geometry.npz", "ir.npz", "ir_profile.json") if (state / f).exists()]
+    assert "geometry.npz" in files and "ir.npz" in files
+    for f in files:
+        data = (state / f).read_bytes()
+        (state / f).write_bytes(data[: len(data) // 3])
+    r, res = _run(kinect_sphere, out)
+    bad = [m for m in r.messages if "is unreadable" in m and "recomputing" in m]
+    assert bad and any(f in m for m in bad for f in files)     # the first stage that failed says so
+    assert not any("reusing the checkpointed geometry" in m for m in r.messages)
+    assert res.n_clusters >= 1 and np.isfinite(res.rho_d).all() and np.isfinite(res.alpha).all()
+    with np.load(state / "ir.npz") as z:                      # rewritten whole
+        assert "leaf_hbsab" in z.files and "labels" in z.files
+
+
 def test_checkpoints_of_another_configuration_are_recomputed(kinect_sphere, tmp_path):
     out = tmp_path / "scan"
     _run(kinect_sphere, out)
