@@ -185,7 +185,17 @@ def _ransac(p: np.ndarray, tau: float, radius: float | None, r_range: tuple[floa
         return []
     A = A[ok]
     b = b[ok]
-    sol = np.linalg.solve(A, b[..., None])[..., 0]          # (K', 4)
+    try:
+        sol = np.linalg.solve(A, b[..., None])[..., 0]      # (K', 4)
+    except np.linalg.LinAlgError:
+        # a sample the determinant test let through is exactly singular in LU (the scaled test can
+        # pass for points all but on one plane): solve one by one and drop the singular ones
+        sol = np.full((len(A), 4), np.nan)
+        for i in range(len(A)):
+            try:
+                sol[i] = np.linalg.solve(A[i], b[i])
+            except np.linalg.LinAlgError:
+                pass
     c = sol[:, :3]
     r2 = sol[:, 3] + (c * c).sum(axis=1)
     good = np.isfinite(r2) & (r2 > 0)
