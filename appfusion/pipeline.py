@@ -511,6 +511,19 @@ class ScanRunner:
             self._recomputing = True
         return ok
 
+    def _reuse(self, stage: str, path, load, what: str):
+        """The checkpointed object of ``stage`` (``load(path)``), or None when the stage must run:
+        no valid checkpoint, or a file that does not load (noted, and the later stages rerun too)."""
+        if not (self._stage_done(stage) and path.exists()):
+            return None
+        try:
+            obj = load(path)
+        except Exception as e:  # noqa: BLE001 - a corrupt file: recompute the stage
+            self._unreadable(stage, path, e)
+            return None
+        self._note(f"{stage}: reusing the checkpointed {what}")
+        return obj
+
     def _unreadable(self, stage: str, path, e: Exception) -> None:
         """A checkpoint file that does not load: the stage and every stage after it are recomputed."""
         self._note(f"{stage}: the checkpoint {path} is unreadable ({type(e).__name__}: {e}): recomputing")
@@ -596,14 +609,10 @@ class ScanRunner:
         from calibration.ir_response import calibrate_ir
 
         path = self.state_dir / "ir_profile.json"
-        if self._stage_done("ir-calibration") and path.exists():
-            try:
-                self.ir_profile = IRProfile.load(path)
-            except Exception as e:  # noqa: BLE001 - a corrupt file: recompute the stage
-                self._unreadable("ir-calibration", path, e)
-            else:
-                self._note("ir-calibration: reusing the checkpointed IR profile")
-                return
+        profile = self._reuse("ir-calibration", path, IRProfile.load, "IR profile")
+        if profile is not None:
+            self.ir_profile = profile
+            return
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}
         emitter = meta.get("emitter_position_m", (0.075, 0.0, 0.0))
         self._publish(force=True, stage="ir-calibration", guidance=GUIDANCE["ir-calibration"])
@@ -634,14 +643,10 @@ class ScanRunner:
         from .lighting_pass import LightingPass
 
         path = self.state_dir / "envmap.npz"
-        if self._stage_done("environment") and path.exists():
-            try:
-                self.env = EnvMap.load(path)
-            except Exception as e:  # noqa: BLE001 - a corrupt file: recompute the stage
-                self._unreadable("environment", path, e)
-            else:
-                self._note("environment: reusing the checkpointed environment map")
-                return
+        env = self._reuse("environment", path, EnvMap.load, "environment map")
+        if env is not None:
+            self.env = env
+            return
         cfg = self.config
         geo = _Geometry(self.source.meta, self.config, surface=False)      # tracks only
         meta = self.source.meta if isinstance(self.source.meta, dict) else {}
