@@ -547,9 +547,9 @@ class ScanRunner:
             return {k: z[k] for k in z.files}
 
     def _load_npz(self, name: str) -> dict[str, np.ndarray]:
-        cache = getattr(self, "_npz_cache", None) or {}
-        if name in cache:
-            return self._npz_cache.pop(name)
+        cache = getattr(self, "_npz_cache", None)            # read (and checked) by _stage_done
+        if cache and name in cache:
+            return cache.pop(name)
         return self._read_npz(name)
 
     # -- frames -------------------------------------------------------------------------------------
@@ -743,7 +743,6 @@ class ScanRunner:
 
     def _stage_ir(self, start: int, stop: int) -> None:
         """§5.1-5.2: IR frames of the geometry pass into the BRDF cut; clusters and Ward fits."""
-
         if self._stage_done("ir"):
             self._ir_result = self._load_npz("ir")
             leaf = self._ir_result.pop("leaf_hbsab", None)
