@@ -273,6 +273,12 @@ class _Control:
         return not self.stop_event.is_set()
 
 
+def _read_npz(path) -> dict[str, np.ndarray]:
+    """Every array of a checkpoint ``.npz``, read whole (a damaged file fails here, not in a stage)."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
 class ScanRunner:
     """Runs a whole scan over one source; the GUI and the CLI drive it.
 
@@ -499,35 +505,26 @@ class ScanRunner:
             if not ok:
                 self._note(f"{stage}: the checkpoint in {self.state_dir} was made from another recording, "
                            "configuration or engine version: recomputing")
-            elif (self.state_dir / f"{stage}.npz").exists():
-                # a truncated or corrupt array file (a disk that filled, a copy cut short) is a missing
-                # checkpoint, not a crash: every array is read (zip CRCs checked) and kept for the stage
-                try:
-                    self._npz_cache = {stage: self._read_npz(stage)}
-                except Exception as e:  # noqa: BLE001 - numpy/zipfile raise many types for a bad file
-                    ok = False
-                    self._unreadable(stage, self.state_dir / f"{stage}.npz", e)
         if not ok:
             self._recomputing = True
         return ok
 
-    def _reuse(self, stage: str, path, load, what: str):
-        """The checkpointed object of ``stage`` (``load(path)``), or None when the stage must run:
-        no valid checkpoint, or a file that does not load (noted, and the later stages rerun too)."""
-        if not (self._stage_done(stage) and path.exists()):
+    def _reuse(self, stage: str, what: str, path=None, load=None):
+        """The checkpoint of ``stage`` (``load(path)``; by default the arrays of ``STAGE.npz``), or None
+        when the stage must run: no valid checkpoint, or a file that does not load (a disk that filled,
+        a copy cut short: noted, and this stage and the later ones are recomputed)."""
+        path = self.state_dir / f"{stage}.npz" if path is None else path
+        if not self._stage_done(stage):
             return None
         try:
-            obj = load(path)
-        except Exception as e:  # noqa: BLE001 - a corrupt file: recompute the stage
-            self._unreadable(stage, path, e)
+            obj = (load or _read_npz)(path)
+        except Exception as e:  # noqa: BLE001 - numpy, zipfile and the loaders raise many types for a bad file
+            # a missing file lands here too: recompute this stage and, since it changes, the later ones
+            self._note(f"{stage}: the checkpoint {path} is unreadable ({type(e).__name__}: {e}): recomputing")
+            self._recomputing = True
             return None
         self._note(f"{stage}: reusing the checkpointed {what}")
         return obj
-
-    def _unreadable(self, stage: str, path, e: Exception) -> None:
-        """A checkpoint file that does not load: the stage and every stage after it are recomputed."""
-        self._note(f"{stage}: the checkpoint {path} is unreadable ({type(e).__name__}: {e}): recomputing")
-        self._recomputing = True
 
     def _mark_done(self, stage: str, info: dict | None = None) -> None:
         self.state_dir.mkdir(parents=True, exist_ok=True)
@@ -541,16 +538,6 @@ class ScanRunner:
         tmp = self.state_dir / f"{name}.tmp.npz"
         np.savez_compressed(tmp, **arrays)
         os.replace(tmp, self.state_dir / f"{name}.npz")
-
-    def _read_npz(self, name: str) -> dict[str, np.ndarray]:
-        with np.load(self.state_dir / f"{name}.npz", allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-
-    def _load_npz(self, name: str) -> dict[str, np.ndarray]:
-        cache = getattr(self, "_npz_cache", None)            # read (and checked) by _stage_done
-        if cache and name in cache:
-            return cache.pop(name)
-        return self._read_npz(name)
 
     # -- frames -------------------------------------------------------------------------------------
     def _frames(self, start: int, stop: int, stage: str):
@@ -609,7 +596,7 @@ class ScanRunner:
         from calibration.ir_response import calibrate_ir
 
         path = self.state_dir / "ir_profile.json"
-        profile = self._reuse("ir-calibration", path, IRProfile.load, "IR profile")
+        profile = self._reuse("ir-calibration", "IR profile", path, IRProfile.load)
         if profile is not None:
             self.ir_profile = profile
             return
@@ -643,7 +630,7 @@ class ScanRunner:
         from .lighting_pass import LightingPass
 
         path = self.state_dir / "envmap.npz"
-        env = self._reuse("environment", path, EnvMap.load, "environment map")
+        env = self._reuse("environment", "environment map", path, EnvMap.load)
         if env is not None:
             self.env = env
             return
@@ -712,12 +699,11 @@ class ScanRunner:
     def _stage_geometry(self, start: int, stop: int, pass_name: str) -> None:
         """§4.1: tracking + TSDF fusion, markers and object box, then point sampling."""
         cfg = self.config
-        if self._stage_done("geometry"):
-            g = self._load_npz("geometry")
+        g = self._reuse("geometry", "geometry")
+        if g is not None:
             self.points = (g["positions"], g["normals"])
             self.mesh = (g["mesh_vertices"], g["mesh_faces"])
             self.poses = {int(i): p for i, p in zip(g["pose_index"], g["poses"])}
-            self._note("geometry: reusing the checkpointed geometry")
             self._publish(force=True, positions=self.points[0], normals=self.points[1])
             return
         self.geometry = _Geometry(self.source.meta, self.config)
@@ -743,10 +729,10 @@ class ScanRunner:
 
     def _stage_ir(self, start: int, stop: int) -> None:
         """§5.1-5.2: IR frames of the geometry pass into the BRDF cut; clusters and Ward fits."""
-        if self._stage_done("ir"):
-            self._ir_result = self._load_npz("ir")
+        ir_arrays = self._reuse("ir", "clusters")
+        if ir_arrays is not None:
+            self._ir_result = ir_arrays
             leaf = self._ir_result.pop("leaf_hbsab", None)
-            self._note("ir: reusing the checkpointed clusters")
             self._publish(force=True, labels=self._ir_result["labels"], alpha=self._ir_result["alpha"])
             if leaf is not None and self.ir_profile is not None and self.points is not None:
                 # the BRDF cut's leaf buffers come back, so that the colour pass can refit the lobes
@@ -858,9 +844,9 @@ class ScanRunner:
         """§4.2 + §5.3: white-balanced RGB frames into per-point rho_d and per-cluster rho_s."""
         from .rgb_pass import RGBPass
 
-        if self._stage_done("rgb"):
-            self._rgb_result = self._load_npz("rgb")
-            self._note("rgb: reusing the checkpointed rho_d / rho_s")
+        rgb_arrays = self._reuse("rgb", "rho_d / rho_s")
+        if rgb_arrays is not None:
+            self._rgb_result = rgb_arrays
             return
         P, N = self.points
         labels = self._current_labels()

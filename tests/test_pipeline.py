@@ -86,6 +86,13 @@ def test_unreadable_checkpoints_are_recomputed_not_fatal(kinect_sphere, tmp_path
     assert res.n_clusters >= 1 and np.isfinite(res.rho_d).all() and np.isfinite(res.alpha).all()
     with np.load(state / "ir.npz") as z:                      # rewritten whole
         assert "leaf_hbsab" in z.files and "labels" in z.files
+    # a stage marked done whose array file is gone: that stage and every later one run again
+    (state / "geometry.npz").unlink()
+    r2, res2 = _run(kinect_sphere, out)
+    assert any("geometry.npz is unreadable" in m for m in r2.messages)
+    assert not any("reusing the checkpointed clusters" in m or "reusing the checkpointed rho_d" in m
+                   for m in r2.messages)
+    assert (state / "geometry.npz").exists() and np.isfinite(res2.alpha).all()
 
 
 def test_checkpoints_of_another_configuration_are_recomputed(kinect_sphere, tmp_path):
