@@ -72,7 +72,9 @@ class GeometryConfig:
         Normal-difference sigma of the normal filter.
     bilateral_iterations : int
     bilateral_k : int
-        Neighbours per point of the normal filter.
+        Neighbours per point of the normal filter (a random subset: the filter is a Monte Carlo
+        estimate of its weighted mean). The demo's relit error, same geometry, four point samplings:
+        0.051-0.065 at 64, 0.050-0.058 at 128, 0.048-0.055 at 256 (the filter 6 / 12 / 28 s).
     min_component : float
         Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
         are dropped (flying fragments).
@@ -95,7 +97,7 @@ class GeometryConfig:
     bilateral_sigma_s: float | None = None
     bilateral_sigma_n: float = 0.25
     bilateral_iterations: int = 3
-    bilateral_k: int = 64
+    bilateral_k: int = 128
     min_component: float = 0.02
     hole_radius: float = 0.01
     seed: int = 0
@@ -277,7 +279,11 @@ class GeometryPass:
                     keep[dup[dup != dup[np.argmin(dj[dup])]]] = False
         if keep.sum() == 0 or len(set(j[keep])) < keep.sum():
             return None
-        return det.centers[keep], C[j[keep]]
+        # the support plane's normal (world; None before any was fused): a centre's error across
+        # the plane weighs more than within it (FusionConfig.anchor_normal_weight)
+        ns = np.asarray(self.tracker.normal_sum, float)
+        normal = ns / np.linalg.norm(ns) if np.linalg.norm(ns) > 0 else None
+        return det.centers[keep], C[j[keep]], normal
 
     def _match_complete(self, det: MarkerDetection) -> np.ndarray:
         """Circle numbers of a complete detection while tracking is lost.

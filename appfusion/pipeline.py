@@ -41,8 +41,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: normals and poses re-registered to the final mesh; 7: filled holes wound like the mesh around them;
 #: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters
 #: and a third colour sweep when a measured lobe moved; 9: complete depth blocks only and marker anchors
-#: weighted 3 in tracking)
-CHECKPOINT_VERSION = 9
+#: weighted 3 in tracking; 10: the anchors' error across the support plane weighted 30, normals filtered
+#: over 128 neighbours)
+CHECKPOINT_VERSION = 10
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 

@@ -576,3 +576,29 @@ def test_open_boundary_points_are_those_near_the_cut_rim():
     assert rim[near].all() and not rim[far].any() and near.any()
     assert not open_boundary_points(P, Vc, Fc, 0.0).any()
     assert open_boundary_points(P, Vc, np.zeros((0, 3), int), 0.004).shape == (len(P),)
+
+
+def test_anchor_error_across_the_support_plane_weighs_anchor_normal_weight():
+    """An anchor with the support plane's normal weighs its error along that normal by
+    ``anchor_normal_weight`` and within the plane by ``anchor_weight`` (a circle centre found on the
+    depth's plane is far better known across it). Depth of a fronto-parallel plane pins the motion
+    along the camera's z; anchors that ask for 4 mm along z and 2 mm along x get their x in every
+    case (nothing else constrains it), and the more of their z the more their normal weighs."""
+    def shift(normal_weight, with_normal):
+        fu = TSDFFusion(K320, FusionConfig(anchor_weight=3.0, anchor_normal_weight=normal_weight))
+        K = fu.K_trk
+        depth = _plane_depth(K, 0.7, 0.0)
+        normals = np.zeros(depth.shape + (3,), np.float32)
+        normals[..., 2] = -1.0
+        src = np.array([[0.1, 0.05, 0.7], [-0.1, 0.05, 0.7], [0.0, -0.1, 0.7]])
+        anchors = (src, src + [0.002, 0.0, 0.004]) + (((0.0, 0.0, 1.0),) if with_normal else ())
+        T, overlap, frac, _ = fu.icp(depth, depth, normals, np.eye(4), 0.02, anchors)
+        assert overlap > 0.9 and frac > 0.9
+        return T[:3, 3]
+
+    plain, same, heavy = shift(3.0, False), shift(3.0, True), shift(30.0, True)
+    np.testing.assert_allclose(same, plain, atol=1e-7)         # equal weights: the isotropic term
+    for t in (plain, heavy):
+        assert abs(t[0] - 0.002) < 1e-4 and abs(t[1]) < 1e-4
+    assert 0.0 < plain[2] < heavy[2] < 0.004
+    assert heavy[2] > 2 * plain[2]

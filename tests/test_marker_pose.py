@@ -69,9 +69,11 @@ def test_a_circle_detected_twice_keeps_the_frame_anchored():
     C = np.array([[0.15, -0.15, 0.0], [0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0]])
     gp.tracker.sums[:] = C
     gp.tracker.counts[:] = 1
+    gp.tracker.normal_sum[:] = [0, 0, 2.0]
     gp.fusion = SimpleNamespace(predicted_pose=lambda: np.eye(4), lost=False)
     seen = C[[0, 1, 3, 1]] + np.array([[0.002, 0, 0], [0.0, 0.003, 0], [0, 0, 0.001], [0.006, 0.0, 0.0]])
     det = MarkerDetection(seen, np.full(4, 0.03), np.zeros((4, 2)), np.array([0, 0, 1.0]), 0.0, False, "ir")
-    src, dst = gp._anchors(det)
+    src, dst, normal = gp._anchors(det)
     assert len(src) == 3
     assert np.allclose(dst, C[[0, 1, 3]]) and np.allclose(src, seen[:3])
+    assert np.allclose(normal, [0, 0, 1])   # the support plane's normal, for the anchors' weights
