@@ -15,6 +15,9 @@ Detection, per frame
 3. Each blob's contour is back-projected onto that plane and a circle is fitted there
    (:func:`circle_on_plane`): this gives the exact 3-D centre (the centre of the image ellipse is
    not the projection of the circle's centre) and the radius, which must match the known radius.
+   The circle is then fitted to the blob's pixels themselves, a blurred disc on the plane over an
+   uneven plateau and background (:func:`refine_circle`): a contour's fraction-of-a-pixel inset,
+   seen at an angle, moved the centres 0.15 mm towards the camera.
 4. Four circles forming the known square are chosen and numbered (:func:`number_square`).
 
 Marker frame (``docs/conventions.md``)
@@ -44,7 +47,7 @@ from .errors import AppFusionError, EstimationError
 from .frame import Frame, Intrinsics, invert_pose, transform_points
 
 __all__ = ["MarkerConfig", "Ellipse", "MarkerDetection", "MarkerTracker", "ObjectBox",
-           "detect_circles", "fit_plane_ransac", "circle_on_plane", "number_square", "marker_frame",
+           "detect_circles", "fit_plane_ransac", "circle_on_plane", "refine_circle", "number_square", "marker_frame",
            "detect_markers", "marker_config_from_meta"]
 
 
@@ -71,6 +74,8 @@ class MarkerConfig:
         Relative tolerance of the measured radius.
     side_tol : float
         Relative tolerance of the square's sides and diagonals.
+    refine : bool
+        Fit each circle to the image of its blob (:func:`refine_circle`) after the contour fit.
     """
 
     radius_m: float = 0.02
@@ -79,6 +84,7 @@ class MarkerConfig:
     key_radius_m: float | None = None
     radius_tol: float = 0.25
     side_tol: float = 0.08
+    refine: bool = True
 
     def __post_init__(self):
         if not (self.radius_m > 0):
@@ -314,6 +320,140 @@ def circle_on_plane(contour_px: np.ndarray, K: Intrinsics, normal: np.ndarray, d
     return center, r + 0.5 * pix_m, rms
 
 
+def refine_circle(image01: np.ndarray, K: Intrinsics, normal: np.ndarray, d: float, center: np.ndarray,
+                  radius: float, margin: float = 1.6) -> tuple[np.ndarray, float] | None:
+    """A circle on a known plane fitted to the image of the blob itself (beyond the paper).
+
+    Model of each pixel in a window around the circle: ``I = B + (Pl - B) Phi(-s / sigma)``, with
+    ``s`` the pixel's signed distance to the circle's edge on the plane converted to pixels (the
+    plane's footprint there), ``Pl`` and ``B`` the plateau and the paper around it as planes in the
+    image (an uneven light), ``sigma`` the blur. Centre (on the plane), radius, blur and the two
+    planes are fitted by robust least squares (Huber, Levenberg-Marquardt) from
+    :func:`circle_on_plane`'s answer.
+
+    Why: the contour of a thresholded blob lies a fraction of a pixel inside the edge, by an amount
+    that depends on the threshold and the light; seen at an angle, 0.1 pixel of contour offset moves
+    the centre ~0.1 mm along the line of sight (20 degrees of elevation), and the far side's pixels
+    cover more of the plane, so the centres came out 0.15 mm towards the camera on the demo. Every
+    pixel of the blob enters the fit, which also averages the IR emitter's dot pattern.
+
+    Measured: rendered discs at 20-60 degrees of elevation, within 0.03 mm (contour 0.1-0.2 mm off);
+    the demo's geometry frames against the truth, along the line of sight within the plane, mean
+    +0.01 mm (std 0.29) against -0.15 mm (0.42) from the contour, across it 0.22 mm std (0.30). A
+    light falling off as 1/d^2 across a disc at 20 degrees still leaves -0.16 mm (the contour -0.47;
+    not traced). ~10 ms a circle on one core.
+
+    Parameters
+    ----------
+    image01 : (H, W) float array
+        The image the circle was found in, scaled to about 0-1.
+    K : Intrinsics
+    normal, d : the plane ``normal . x + d = 0`` (camera frame of ``K``, metres).
+    center : (3,) array, radius : float
+        Starting circle (metres).
+    margin : float
+        Window: the circle's image out to ``margin`` radii.
+
+    Returns
+    -------
+    (center (3,), radius) or None when the fit fails or strays (centre moved more than a third of
+    the radius, radius changed by more than 20 %).
+    """
+    from scipy.special import ndtr
+
+    n = np.asarray(normal, np.float64)
+    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    c0 = np.asarray(center, np.float64)
+    H, W = image01.shape
+    ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    ring = c0 + margin * radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+    uvr, zr = K.project(ring)
+    if not (np.all(zr > 0) and np.all(np.isfinite(uvr))):
+        return None
+    x0, y0 = int(np.floor(uvr[:, 0].min())), int(np.floor(uvr[:, 1].min()))
+    x1, y1 = int(np.ceil(uvr[:, 0].max())) + 1, int(np.ceil(uvr[:, 1].max())) + 1
+    if x0 < 0 or y0 < 0 or x1 > W or y1 > H or (x1 - x0) * (y1 - y0) > 40000 or (x1 - x0) < 6 or (y1 - y0) < 6:
+        return None
+    vv, uu = np.mgrid[y0:y1, x0:x1]
+    uu, vv = uu.ravel().astype(np.float64), vv.ravel().astype(np.float64)
+    I = np.asarray(image01, np.float64)[y0:y1, x0:x1].ravel()
+    rays = np.stack([(uu - K.cx) / K.fx, (vv - K.cy) / K.fy, np.ones_like(uu)], axis=1)
+    den = rays @ n
+    if np.any(np.abs(den) < 1e-9):
+        return None
+    X = rays * (-d / den)[:, None]
+    px, py = (X - c0) @ e1, (X - c0) @ e2                    # plane coordinates (metres)
+    rr0 = np.hypot(px, py)
+    inside = rr0 < radius
+    # pixels per metre along the radial direction on the plane, at each pixel
+    ru = np.where(rr0 > 1e-9, px / np.maximum(rr0, 1e-12), 1.0)
+    rv = np.where(rr0 > 1e-9, py / np.maximum(rr0, 1e-12), 0.0)
+    step = 1e-4
+    Xs = X + step * (ru[:, None] * e1 + rv[:, None] * e2)
+    k = np.hypot(K.fx * (Xs[:, 0] / Xs[:, 2] - X[:, 0] / X[:, 2]), K.fy * (Xs[:, 1] / Xs[:, 2] - X[:, 1] / X[:, 2])) / step
+    du, dv = (uu - uu.mean()) / 10.0, (vv - vv.mean()) / 10.0
+    hi = float(np.median(I[inside])) if inside.any() else float(I.max())
+    lo = float(np.median(I[rr0 > 1.3 * radius])) if (rr0 > 1.3 * radius).any() else float(I.min())
+    if not hi > lo:
+        return None
+
+
+    def parts(q):
+        cx, cy, r, sig = q[:4]
+        sig = max(abs(sig), 0.05)
+        pl = q[4] + q[5] * du + q[6] * dv
+        bg = q[7] + q[8] * du + q[9] * dv
+        ddx, ddy = px - cx, py - cy
+        rho = np.maximum(np.hypot(ddx, ddy), 1e-12)
+        t = -(rho - r) * k / sig                           # minus the signed distance in blurs
+        return pl, bg, ddx, ddy, rho, t, sig
+
+    def resid(q):
+        pl, bg, _, _, _, t, _ = parts(q)
+        return bg + (pl - bg) * ndtr(t) - I
+
+    def jac(q):
+        pl, bg, ddx, ddy, rho, t, sig = parts(q)
+        f = ndtr(t)
+        g = (pl - bg) * np.exp(-0.5 * t * t) * (1.0 / np.sqrt(2 * np.pi))   # d model / d t
+        return np.stack([g * k * ddx / (rho * sig), g * k * ddy / (rho * sig), g * k / sig, -g * t / sig,
+                         f, f * du, f * dv, 1 - f, (1 - f) * du, (1 - f) * dv], axis=1)
+
+    # Levenberg-Marquardt on Huber-weighted residuals (a neighbouring object's pixels in the window,
+    # the emitter's dots), normal equations of the 10 unknowns: ~1 ms an iteration at 5000 pixels
+    q = np.array([0.0, 0.0, radius, 0.8, hi, 0.0, 0.0, lo, 0.0, 0.0])
+    huber = 0.1 * (hi - lo)
+    lam, cost = 1e-3, np.inf
+    for _ in range(30):
+        res = resid(q)
+        w = np.where(np.abs(res) < huber, 1.0, huber / np.maximum(np.abs(res), 1e-12))
+        c_now = float(np.sum(w * res * res))
+        if c_now > cost:                                   # the last step made it worse: undo, damp more
+            q, lam = q_prev, lam * 10
+            if lam > 1e6:
+                break
+            res = resid(q)
+            w = np.where(np.abs(res) < huber, 1.0, huber / np.maximum(np.abs(res), 1e-12))
+        else:
+            cost, lam = c_now, max(lam * 0.3, 1e-7)
+        J = jac(q)
+        A = J.T @ (J * w[:, None])
+        b = J.T @ (w * res)
+        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -b)
+        q_prev = q
+        q = q + step
+        if np.all(np.abs(step[:3]) < 1e-7) and abs(step[3]) < 1e-4:
+            break
+    if not np.isfinite(q).all():
+        return None
+    cx, cy, r = q[:3]
+    if not (np.hypot(cx, cy) < radius / 3 and abs(r / radius - 1) < 0.2):
+        return None
+    return c0 + cx * e1 + cy * e2, float(r)
+
+
 def number_square(centers: np.ndarray, normal: np.ndarray, x_hint: np.ndarray) -> np.ndarray:
     """Order four circle centres 1..4 (see the module docstring) given the marker normal (z) and a
     direction that x should be closest to. Returns the permutation (indices into ``centers``)."""
@@ -466,6 +606,7 @@ def detect_markers(frame: Frame, config: MarkerConfig | None = None, stream: str
     min_r = max(2.5, 0.5 * K.fx * cfg.radius_m / max(zmed * 2.5, 1e-3))
     max_r = 2.0 * K.fx * cfg.radius_m / max(float(np.percentile(z, 1)), 0.05)
     ells = detect_circles(img, min_radius_px=min_r, max_radius_px=max_r)
+    g01 = _to_gray01(img) if cfg.refine else None
     if not ells:
         return _empty(stream)
     # plane from the depth points around the blobs
@@ -494,6 +635,10 @@ def detect_markers(frame: Frame, config: MarkerConfig | None = None, stream: str
             continue
         if not cfg.radius_ok(r) or rms > 0.3 * cfg.radius_m:
             continue
+        if cfg.refine:
+            better = refine_circle(g01, K, n, d, c, r)
+            if better is not None and cfg.radius_ok(better[1]):
+                c, r = better
         cands.append((c, r, e.center))
     if not cands:
         return MarkerDetection(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2)), _to_depth_dir(n, T),

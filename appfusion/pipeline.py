@@ -42,8 +42,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters
 #: and a third colour sweep when a measured lobe moved; 9: complete depth blocks only and marker anchors
 #: weighted 3 in tracking; 10: the anchors' error across the support plane weighted 30, normals filtered
-#: over 128 neighbours)
-CHECKPOINT_VERSION = 10
+#: over 128 neighbours; 11: circle centres fitted to the blobs' pixels)
+CHECKPOINT_VERSION = 11
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
