@@ -384,7 +384,8 @@ class FusionConfig:
         (the geometry pass's marker centres do); ``anchor_weight`` then weighs the error within the
         plane. A centre is fitted on the RANSAC plane of the depth (:func:`appfusion.markers.circle_on_plane`):
         measured against the truth on the demo's geometry frames its error across the plane is
-        0.06 mm (std), within it 0.30-0.42 mm, biased along the line of sight. At 30 (3 within the
+        0.06 mm (std), within it 0.30-0.42 mm from the blob's contour (biased along the line of
+        sight), 0.22-0.29 mm fitted to its pixels (:func:`appfusion.markers.refine_circle`). At 30 (3 within the
         plane) the objects' centre sat 0.08 mm (rms) off the truth vertically (0.11 at a flat 3),
         the cap's top no longer bulged (+11 um against +47 at 55-90 degrees of elevation), and the
         relit error of the same geometry over four point samplings was 0.051-0.065 against
@@ -882,10 +883,11 @@ class TSDFFusion:
         ----------
         depth : (H, W) float array
             Depth in metres (NaN or 0 invalid) of the size of ``intrinsics``.
-        anchors : (cam_pts (K, 3), world_pts (K, 3)), optional
+        anchors : (cam_pts (K, 3), world_pts (K, 3)[, world normal (3,) or (K, 3)]), optional
             Points of this frame (depth camera frame) whose world positions are known, e.g. the
             marker centres: they join the ICP as point-to-point terms, and with three or more a
-            lost frame is relocalised from their rigid fit instead of the last good pose.
+            lost frame is relocalised from their rigid fit instead of the last good pose. With a
+            normal (the support plane's) their error along it weighs ``anchor_normal_weight``.
 
         Returns
         -------
