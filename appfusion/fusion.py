@@ -522,8 +522,9 @@ class TSDFFusion:
         self.f_int = max(1, int(round(intrinsics.width / cfg.integrate_width)))
         # a circle centre is as precise as the pixels it was found in: the anchors' weight (inverse
         # variance) falls with the square of the pixel footprint below 640 px (see FusionConfig)
-        self.anchor_weight = cfg.anchor_weight * min(1.0, intrinsics.width / 640.0) ** 2
-        self.anchor_normal_weight = cfg.anchor_normal_weight * min(1.0, intrinsics.width / 640.0) ** 2
+        footprint = min(1.0, intrinsics.width / 640.0) ** 2
+        self.anchor_weight = cfg.anchor_weight * footprint
+        self.anchor_normal_weight = cfg.anchor_normal_weight * footprint
         self.K_int = intrinsics.scaled(intrinsics.width // self.f_int, intrinsics.height // self.f_int)
         self.f_trk = max(1, int(round(self.K_int.width / cfg.track_width)))
         self.K_trk = self.K_int.scaled(self.K_int.width // self.f_trk, self.K_int.height // self.f_trk)

@@ -279,11 +279,9 @@ class GeometryPass:
                     keep[dup[dup != dup[np.argmin(dj[dup])]]] = False
         if keep.sum() == 0 or len(set(j[keep])) < keep.sum():
             return None
-        # the support plane's normal (world; None before any was fused): a centre's error across
-        # the plane weighs more than within it (FusionConfig.anchor_normal_weight)
-        ns = np.asarray(self.tracker.normal_sum, float)
-        normal = ns / np.linalg.norm(ns) if np.linalg.norm(ns) > 0 else None
-        return det.centers[keep], C[j[keep]], normal
+        # with the support plane's normal: a centre's error across the plane weighs more than within
+        # it (FusionConfig.anchor_normal_weight)
+        return det.centers[keep], C[j[keep]], self.tracker.normal
 
     def _match_complete(self, det: MarkerDetection) -> np.ndarray:
         """Circle numbers of a complete detection while tracking is lost.

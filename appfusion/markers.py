@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from .brdf import local_frame
 from .errors import AppFusionError, EstimationError
 from .frame import Frame, Intrinsics, invert_pose, transform_points
 
@@ -306,9 +307,7 @@ def circle_on_plane(contour_px: np.ndarray, K: Intrinsics, normal: np.ndarray, d
     t = -d / denom
     X = rays * t[:, None]
     c0 = X.mean(0)
-    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
+    e1, e2, _ = local_frame(normal / np.linalg.norm(normal))    # a basis of the plane
     x, y = (X - c0) @ e1, (X - c0) @ e2
     A = np.stack([2 * x, 2 * y, np.ones_like(x)], axis=1)
     sol, *_ = np.linalg.lstsq(A, x * x + y * y, rcond=None)
@@ -362,9 +361,8 @@ def refine_circle(image01: np.ndarray, K: Intrinsics, normal: np.ndarray, d: flo
     from scipy.special import ndtr
 
     n = np.asarray(normal, np.float64)
-    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
+    n = n / np.linalg.norm(n)
+    e1, e2, _ = local_frame(n)                                # a basis of the plane
     c0 = np.asarray(center, np.float64)
     H, W = image01.shape
     ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
@@ -390,15 +388,14 @@ def refine_circle(image01: np.ndarray, K: Intrinsics, normal: np.ndarray, d: flo
     # pixels per metre along the radial direction on the plane, at each pixel
     ru = np.where(rr0 > 1e-9, px / np.maximum(rr0, 1e-12), 1.0)
     rv = np.where(rr0 > 1e-9, py / np.maximum(rr0, 1e-12), 0.0)
-    step = 1e-4
-    Xs = X + step * (ru[:, None] * e1 + rv[:, None] * e2)
-    k = np.hypot(K.fx * (Xs[:, 0] / Xs[:, 2] - X[:, 0] / X[:, 2]), K.fy * (Xs[:, 1] / Xs[:, 2] - X[:, 1] / X[:, 2])) / step
+    h = 1e-4
+    Xs = X + h * (ru[:, None] * e1 + rv[:, None] * e2)
+    k = np.hypot(K.fx * (Xs[:, 0] / Xs[:, 2] - X[:, 0] / X[:, 2]), K.fy * (Xs[:, 1] / Xs[:, 2] - X[:, 1] / X[:, 2])) / h
     du, dv = (uu - uu.mean()) / 10.0, (vv - vv.mean()) / 10.0
     hi = float(np.median(I[inside])) if inside.any() else float(I.max())
     lo = float(np.median(I[rr0 > 1.3 * radius])) if (rr0 > 1.3 * radius).any() else float(I.min())
     if not hi > lo:
         return None
-
 
     def parts(q):
         cx, cy, r, sig = q[:4]
@@ -757,10 +754,15 @@ class MarkerTracker:
         self.n_updates += 1
         return assign
 
+    @property
+    def normal(self) -> np.ndarray | None:
+        """(3,) the fused support plane's unit normal in the world frame; None before any."""
+        ln = float(np.linalg.norm(self.normal_sum))
+        return self.normal_sum / ln if ln > 0 else None
+
     def marker_to_world(self) -> np.ndarray:
         """4x4 transform from the marker frame to the world frame, from the fused centres."""
-        n = self.normal_sum / np.linalg.norm(self.normal_sum)
-        return marker_frame(self.centers, n)
+        return marker_frame(self.centers, self.normal)
 
     def side(self) -> float:
         """Mean measured side of the square, metres."""
