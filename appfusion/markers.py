@@ -420,27 +420,28 @@ def refine_circle(image01: np.ndarray, K: Intrinsics, normal: np.ndarray, d: flo
 
     # Levenberg-Marquardt on Huber-weighted residuals (a neighbouring object's pixels in the window,
     # the emitter's dots), normal equations of the 10 unknowns: ~1 ms an iteration at 5000 pixels
-    q = np.array([0.0, 0.0, radius, 0.8, hi, 0.0, 0.0, lo, 0.0, 0.0])
     huber = 0.1 * (hi - lo)
-    lam, cost = 1e-3, np.inf
-    for _ in range(30):
+
+    def weighted(q):
         res = resid(q)
         w = np.where(np.abs(res) < huber, 1.0, huber / np.maximum(np.abs(res), 1e-12))
-        c_now = float(np.sum(w * res * res))
-        if c_now > cost:                                   # the last step made it worse: undo, damp more
-            q, lam = q_prev, lam * 10
+        return res, w, float(np.sum(w * res * res))
+
+    q = np.array([0.0, 0.0, radius, 0.8, hi, 0.0, 0.0, lo, 0.0, 0.0])
+    res, w, cost = weighted(q)
+    lam, A = 1e-3, None
+    for _ in range(30):
+        if A is None:                                      # the normal equations at a new q
+            J = jac(q)
+            A, g = J.T @ (J * w[:, None]), J.T @ (w * res)
+        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -g)
+        res_t, w_t, cost_t = weighted(q + step)
+        if not cost_t <= cost:                             # worse (or NaN): keep q, damp more
+            lam *= 10
             if lam > 1e6:
                 break
-            res = resid(q)
-            w = np.where(np.abs(res) < huber, 1.0, huber / np.maximum(np.abs(res), 1e-12))
-        else:
-            cost, lam = c_now, max(lam * 0.3, 1e-7)
-        J = jac(q)
-        A = J.T @ (J * w[:, None])
-        b = J.T @ (w * res)
-        step = np.linalg.solve(A + lam * np.diag(np.diag(A) + 1e-12), -b)
-        q_prev = q
-        q = q + step
+            continue
+        q, res, w, cost, lam, A = q + step, res_t, w_t, cost_t, max(lam * 0.3, 1e-7), None
         if np.all(np.abs(step[:3]) < 1e-7) and abs(step[3]) < 1e-4:
             break
     if not np.isfinite(q).all():
