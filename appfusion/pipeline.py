@@ -43,7 +43,7 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: and a third colour sweep when a measured lobe moved; 9: complete depth blocks only and marker anchors
 #: weighted 3 in tracking; 10: the anchors' error across the support plane weighted 30, normals filtered
 #: over 128 neighbours; 11: circle centres fitted to the blobs' pixels)
-CHECKPOINT_VERSION = 11
+CHECKPOINT_VERSION = 12
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -895,10 +895,11 @@ class ScanRunner:
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
         if r.heldout_rss is not None:
             ward = r.rho_s_ward if r.rho_s_ward is not None else np.full((len(r.model), 3), np.nan)
-            self._note("rgb: model ladder (held-out RSS diffuse / Ward): " + "; ".join(
-                f"cluster {c} {m} ({a:.3g} / {b:.3g}" + (f"; Ward's rho_s would be {np.mean(w):.4f})" if m == "diffuse"
-                                                         else ")")
-                for c, (m, (a, b), w) in enumerate(zip(r.model, r.heldout_rss, ward))))
+            zs = r.heldout_z if r.heldout_z is not None else np.full(len(r.model), np.nan)
+            self._note("rgb: model ladder (held-out RSS diffuse / Ward, improvement in standard errors): " + "; ".join(
+                f"cluster {c} {m} ({a:.3g} / {b:.3g}, z {z:.1f}" + (f"; Ward's rho_s would be {np.mean(w):.4f})"
+                                                                   if m == "diffuse" else ")")
+                for c, (m, (a, b), w, z) in enumerate(zip(r.model, r.heldout_rss, ward, zs))))
         self._save_npz("rgb", **self._rgb_result)
         self._mark_done("rgb", {"frames": used})
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
