@@ -30,7 +30,8 @@ import open3d as o3d
 
 from .errors import AppFusionError, EstimationError
 from .frame import Frame, Intrinsics, invert_pose, transform_points
-from .fusion import FusionConfig, TSDFFusion, _twist_to_pose, blas_threads, kabsch, voxel_size_for_box
+from .fusion import (FusionConfig, TSDFFusion, _twist_to_pose, blas_threads, downsample_depth, kabsch,
+                     voxel_size_for_box)
 from .markers import (MarkerConfig, MarkerDetection, MarkerTracker, ObjectBox, detect_markers,
                       marker_config_from_meta)
 from .points import PointGrid, bilateral_filter_normals, sample_points
@@ -255,16 +256,19 @@ class GeometryPass:
         self.fusion.set_roi(invert_pose(self.tracker.marker_to_world()), lo, hi)
         self._roi_set = True
 
-    def _anchors(self, det: MarkerDetection) -> tuple[np.ndarray, np.ndarray] | None:
+    def _anchors(self, det: MarkerDetection, pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(centres in the camera frame, the fused circles they are, the plane normal), world frame:
+        each detected centre matched to the nearest fused circle through ``pose`` (camera to world;
+        default the tracker's prediction for the next frame), or None."""
         if not (self.config.use_anchors and self.tracker.initialised and det.n):
             return None
         fu = self.fusion
-        W = transform_points(fu.predicted_pose(), det.centers)
+        W = transform_points(fu.predicted_pose() if pose is None else pose, det.centers)
         C = self.tracker.centers
         dist = np.linalg.norm(W[:, None] - C[None], axis=2)
         j = dist.argmin(1)
         # while lost the prediction may be far off: trust the numbering of a complete detection
-        if det.complete and fu.lost:
+        if det.complete and fu.lost and pose is None:
             j = self._match_complete(det)
             keep = np.ones(det.n, bool)
         else:
@@ -374,6 +378,89 @@ class GeometryPass:
             raise EstimationError("geometry pass: no frame has shown all four white circles yet")
         return self.tracker.marker_to_world()
 
+    def _object_mesh(self, W2M: np.ndarray, box) -> o3d.geometry.TriangleMesh:
+        """The fused surface in the marker frame, cropped to the object box (its small pieces
+        dropped) and its small holes filled."""
+        cfg = self.config
+        mesh = self.fusion.extract_mesh()
+        mesh.transform(W2M)
+        if box is not None:
+            mesh = box.crop_mesh(mesh)
+            mesh = _drop_small_components(mesh, cfg.min_component)
+        return fill_small_holes(mesh, cfg.hole_radius)
+
+    def refuse(self, frames, depth_weight: float = 0.1, anchor_sigma: tuple[float, float] = (3e-4, 6e-5)) -> int:
+        """Re-register every tracked frame to the fused object with its marker anchors, and fuse the
+        frames again at those poses (beyond the paper).
+
+        Tracking registers a frame to the model *as fused so far*; on the demo its poses move the
+        object's surface by 0.28 mm (RMS over five object points against the truth), and the mesh
+        fused at them is what the normals come from. Each frame is re-registered to the object mesh
+        fused from all frames (:class:`PoseRefiner`) with its circle centres as anchors (the in-plane
+        and across-plane sigmas ``anchor_sigma``, metres; the depth pixels weighted ``depth_weight``,
+        since their errors are correlated), then a fresh TSDF (same voxel size, region and surface
+        volume) integrates every frame at its new pose, and :meth:`result` extracts that one.
+        Demo: poses 0.28 -> 0.12 mm (ICP to the mesh alone: 0.15, worse than tracking at steep
+        views where the object constrains the pose least); see docs/geometry-pass.md.
+
+        Parameters
+        ----------
+        frames : iterable of Frame
+            The frames :meth:`add_frame` saw (again, in any order); those without a tracked pose in
+            the marker frame are left out.
+        depth_weight : float
+            Weight of each depth pixel's term relative to its noise variance.
+        anchor_sigma : (float, float)
+            Circle-centre sigmas within and across the support plane, metres.
+
+        Returns
+        -------
+        int
+            Frames fused again (0: nothing changed, e.g. no marker frame yet).
+        """
+        if self.fusion is None or not self.tracker.initialised:
+            return 0
+        M2W = self.tracker.marker_to_world()
+        W2M = invert_pose(M2W)
+        old = self._object_mesh(W2M, self.box)
+        if len(old.triangles) == 0:
+            return 0
+        refiner = PoseRefiner(np.asarray(old.vertices), np.asarray(old.triangles), iterations=4,
+                              depth_weight=depth_weight, anchor_sigma=anchor_sigma)
+        by_index = {s.index: s for s in self.states if s.pose_marker is not None and s.ok}
+        new = TSDFFusion(self.fusion.intrinsics, self.fusion.config)
+        if self.fusion.roi is not None:
+            new.set_roi(*self.fusion.roi)
+        n = 0
+        with blas_threads(1):
+            for frame in frames:
+                st = by_index.get(frame.index)
+                if st is None or frame.depth is None:
+                    continue
+                anchors = None
+                try:
+                    det = detect_markers(frame, self.marker_config, self.config.marker_stream)
+                except AppFusionError:
+                    det = None
+                a = self._anchors(det, st.pose) if det is not None and det.n else None
+                if a is not None and len(a[0]):
+                    c_cam, C_w, n_w = a
+                    C_m = transform_points(W2M, C_w)
+                    n_m = W2M[:3, :3] @ n_w if n_w is not None else None
+                    anchors = (c_cam, C_m, n_m)
+                K = frame.depth_intrinsics or self.fusion.intrinsics
+                # from the tracked pose through the final marker frame (pose_marker used the marker
+                # frame as known when the frame was tracked)
+                pm, _ = refiner.refine(frame.depth, K, W2M @ st.pose, anchors=anchors)
+                pose = M2W @ pm
+                d_int = downsample_depth(frame.depth, new.f_int)
+                new.integrate(new._mask_roi(d_int, new.K_int, pose), pose)
+                st.pose, st.pose_marker = pose, pm
+                n += 1
+        if n:
+            self.fusion = new
+        return n
+
     def result(self, n_points: int | None = None, require_markers: bool = True) -> GeometryResult:
         """Mesh cropped to the object box, sampled points with filtered normals, poses, marker frame.
 
@@ -403,12 +490,7 @@ class GeometryPass:
             M2W = np.eye(4)
             box = None
         W2M = invert_pose(M2W)
-        mesh = self.fusion.extract_mesh()
-        mesh.transform(W2M)
-        if box is not None:
-            mesh = box.crop_mesh(mesh)
-            mesh = _drop_small_components(mesh, cfg.min_component)
-        mesh = fill_small_holes(mesh, cfg.hole_radius)
+        mesh = self._object_mesh(W2M, box)
         if len(mesh.triangles) == 0:
             raise EstimationError("geometry pass: the fused surface inside the object box is empty "
                                   "(is the object inside the square of circles, and was it in view?)")
@@ -589,11 +671,17 @@ class PoseRefiner:
         Depth noise (metres), prior sigmas of the rotation (radians) and translation (metres).
     min_pairs : int
         Fewer pairs than this and the pose is returned unchanged.
+    depth_weight : float
+        Scales every depth pair's inverse variance (their errors are correlated across a frame, so
+        with anchors they count as fewer: :meth:`GeometryPass.refuse` uses 0.1).
+    anchor_sigma : (float, float)
+        Sigmas of an anchor (a circle centre, :meth:`refine`) within and across the support plane,
+        metres.
     """
 
     def __init__(self, vertices, faces, step: int = 2, iterations: int = 3, max_dist: float = 0.004,
                  sigma_depth: float = 0.0007, sigma_rot: float = np.radians(0.2), sigma_trans: float = 0.0015,
-                 min_pairs: int = 200):
+                 min_pairs: int = 200, depth_weight: float = 1.0, anchor_sigma: tuple[float, float] = (3e-4, 6e-5)):
         V = np.asarray(vertices, dtype=np.float32)
         F = np.asarray(faces)
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(V) == 0 or len(F) == 0:
@@ -607,10 +695,16 @@ class PoseRefiner:
         self.sigma_depth = float(sigma_depth)
         self.prior = np.r_[np.full(3, float(sigma_rot) ** -2), np.full(3, float(sigma_trans) ** -2)]
         self.min_pairs = int(min_pairs)
+        self.depth_weight = float(depth_weight)
+        if not (self.depth_weight > 0 and len(anchor_sigma) == 2 and min(anchor_sigma) > 0):
+            raise AppFusionError(f"PoseRefiner: depth_weight and anchor_sigma must be positive, got "
+                                 f"{depth_weight} and {anchor_sigma}")
+        self.anchor_sigma = (float(anchor_sigma[0]), float(anchor_sigma[1]))
 
-    def refine(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray) -> tuple[np.ndarray, int]:
+    def refine(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
+               anchors: tuple | None = None) -> tuple[np.ndarray, int]:
         """The refined camera-to-world pose of one depth frame, and the number of pairs used (0: the
-        pose came back unchanged: too few pixels on the mesh).
+        pose came back unchanged: too few pixels on the mesh and no anchors).
 
         Parameters
         ----------
@@ -620,6 +714,11 @@ class PoseRefiner:
             Of the depth image.
         pose : (4, 4) array
             Tracked camera-to-world pose.
+        anchors : (centres_cam, centres_world, normal_world), optional
+            Circle centres seen in this frame (camera frame, (k, 3)) and where they are in the
+            mesh's frame ((k, 3)), and the support plane's unit normal there (None: isotropic, the
+            in-plane sigma). Each adds ``e^T W e``, ``e = C_world - T c_cam``, ``W`` the inverse of
+            the anchor covariance (``anchor_sigma`` within / across the plane).
         """
         T = np.asarray(pose, dtype=np.float64)
         d = np.asarray(depth)
@@ -635,26 +734,63 @@ class PoseRefiner:
         Pc = np.stack([(u[ok] - intrinsics.cx) / intrinsics.fx * z, (v[ok] - intrinsics.cy) / intrinsics.fy * z, z], 1)
         Pw = Pc @ T[:3, :3].T + T[:3, 3]
         Pc = Pc[np.all((Pw > self.lo) & (Pw < self.hi), axis=1)]
-        if len(Pc) < self.min_pairs:
+        anc = self._anchor_terms(anchors)
+        if len(Pc) < self.min_pairs and anc is None:
             return T.copy(), 0
         total = np.zeros(6)
         used = 0
         for _ in range(self.iterations):
-            Pw = Pc @ T[:3, :3].T + T[:3, 3]
-            q = self.scene.compute_closest_points(o3d.core.Tensor(Pw.astype(np.float32)))
-            Q = q["points"].numpy().astype(np.float64)
-            n = q["primitive_normals"].numpy().astype(np.float64)
-            diff = Pw - Q
-            near = np.einsum("ij,ij->i", diff, diff) < self.max_dist ** 2
-            used = int(near.sum())
-            if used < self.min_pairs:
+            H = np.diag(self.prior)
+            g = -self.prior * total
+            if len(Pc) >= self.min_pairs:
+                Pw = Pc @ T[:3, :3].T + T[:3, 3]
+                q = self.scene.compute_closest_points(o3d.core.Tensor(Pw.astype(np.float32)))
+                Q = q["points"].numpy().astype(np.float64)
+                n = q["primitive_normals"].numpy().astype(np.float64)
+                diff = Pw - Q
+                near = np.einsum("ij,ij->i", diff, diff) < self.max_dist ** 2
+                used = int(near.sum())
+            else:
+                used = 0
+            if used >= self.min_pairs:
+                P, n, r = Pw[near], n[near], -np.einsum("ij,ij->i", diff[near], n[near])
+                A = np.concatenate([np.cross(P, n), n], axis=1)            # d r / d (omega, tau), left update
+                w = np.minimum(1.0, 0.001 / np.maximum(np.abs(r), 1e-12)) * (self.depth_weight / self.sigma_depth ** 2)
+                H = H + (A * w[:, None]).T @ A                              # (Huber, 1 mm)
+                g = g + (A * w[:, None]).T @ r
+            elif anc is None:
                 return np.asarray(pose, dtype=np.float64).copy(), 0
-            P, n, r = Pw[near], n[near], -np.einsum("ij,ij->i", diff[near], n[near])
-            A = np.concatenate([np.cross(P, n), n], axis=1)            # d r / d (omega, tau), left update
-            w = np.minimum(1.0, 0.001 / np.maximum(np.abs(r), 1e-12)) / self.sigma_depth ** 2   # Huber, 1 mm
-            H = (A * w[:, None]).T @ A + np.diag(self.prior)
-            g = (A * w[:, None]).T @ r - self.prior * total
+            if anc is not None:
+                c_cam, C_w, W = anc
+                p = c_cam @ T[:3, :3].T + T[:3, 3]
+                for pk, Ck in zip(p, C_w):                                  # d p / d (omega, tau) = [-[p]x, I]
+                    J = np.concatenate([-np.array([[0.0, -pk[2], pk[1]], [pk[2], 0.0, -pk[0]], [-pk[1], pk[0], 0.0]]),
+                                        np.eye(3)], axis=1)
+                    H = H + J.T @ W @ J
+                    g = g + J.T @ W @ (Ck - pk)
             xi = np.linalg.solve(H, g)
             total += xi
             T = _twist_to_pose(xi) @ T
         return T, used
+
+    def _anchor_terms(self, anchors):
+        """(centres_cam, centres_world, W) of :meth:`refine`'s anchors, or None."""
+        if anchors is None:
+            return None
+        c_cam = np.asarray(anchors[0], dtype=np.float64).reshape(-1, 3)
+        C_w = np.asarray(anchors[1], dtype=np.float64).reshape(-1, 3)
+        if len(c_cam) != len(C_w):
+            raise AppFusionError(f"PoseRefiner: {len(c_cam)} anchor centres seen but {len(C_w)} placed")
+        ok = np.isfinite(c_cam).all(axis=1) & np.isfinite(C_w).all(axis=1)
+        if not ok.any():
+            return None
+        s_in, s_n = self.anchor_sigma
+        nrm = anchors[2] if len(anchors) > 2 else None
+        nrm = None if nrm is None else np.asarray(nrm, dtype=np.float64)
+        if nrm is None or not np.isfinite(nrm).all() or np.linalg.norm(nrm) < 1e-9:
+            W = np.eye(3) / s_in ** 2
+        else:
+            nrm = nrm / np.linalg.norm(nrm)
+            nn = np.outer(nrm, nrm)
+            W = (np.eye(3) - nn) / s_in ** 2 + nn / s_n ** 2
+        return c_cam[ok], C_w[ok], W

@@ -551,6 +551,59 @@ def test_pose_refiner_reregisters_a_frame_to_the_final_mesh():
         PoseRefiner(np.zeros((0, 3)), np.zeros((0, 3), int))
 
 
+def test_pose_refiner_anchors_fix_what_the_surface_leaves_free():
+    """A sphere's depth says nothing of a rotation about its centre: re-registered to the mesh alone,
+    a pose turned 0.3 degrees about it stays turned; four circle centres on the plane below (anchors,
+    anisotropic about the plane's normal) turn it back. Anchors alone, with no pixel on the mesh,
+    still move the pose; bad anchors say what is wrong."""
+    from appfusion.geometry_pass import PoseRefiner
+
+    c = np.array([0.0, 0.0, 0.05])
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.05, resolution=80)
+    m.translate(c)
+    V, F = np.asarray(m.vertices), np.asarray(m.triangles)
+    K = Intrinsics(320, 240, 290.0, 290.0, 159.5, 119.5)
+    eye = np.array([0.3, -0.25, 0.3])
+    fwd = (c - eye) / np.linalg.norm(c - eye)
+    right = np.cross(fwd, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    T = make_pose(np.stack([right, np.cross(fwd, right), fwd], 1), eye)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    r = K.rays().astype(np.float64)
+    dirs = (r / np.linalg.norm(r, axis=-1, keepdims=True)) @ T[:3, :3].T
+    rays = np.concatenate([np.broadcast_to(T[:3, 3], dirs.shape), dirs], -1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    depth = (t / np.linalg.norm(r, axis=-1)).astype(np.float32)
+    depth[~np.isfinite(depth)] = np.nan
+    # turned 0.3 degrees about the sphere's centre: the same depth, the plane's circles 0.5 mm off
+    R = cv2.Rodrigues(np.radians([0.1, -0.15, 0.22]))[0]
+    wrong = make_pose(R, c - R @ c) @ T
+    C = np.array([[0.1, 0.1, 0.0], [-0.1, 0.1, 0.0], [-0.1, -0.1, 0.0], [0.1, -0.1, 0.0]])
+    c_cam = transform_points(invert_pose(T), C)
+    rng = np.random.default_rng(3)
+    noisy = c_cam + rng.normal(0, 2e-5, c_cam.shape)
+
+    def circle_shift(P):
+        return np.abs(transform_points(P, c_cam) - C).max()
+
+    assert circle_shift(wrong) > 5e-4
+    ref = PoseRefiner(V, F, step=1, iterations=4, depth_weight=0.1)
+    alone, _ = ref.refine(depth, K, wrong)
+    assert circle_shift(alone) > 4e-4, circle_shift(alone)              # the sphere cannot tell
+    anchored, pairs = ref.refine(depth, K, wrong, anchors=(noisy, C, [0, 0, 1.0]))
+    assert pairs > 1000 and circle_shift(anchored) < 1e-4, circle_shift(anchored)
+    # isotropic anchors (no normal) work too; anchors alone move an empty view's pose
+    iso, _ = ref.refine(depth, K, wrong, anchors=(noisy, C, None))
+    assert circle_shift(iso) < 1.5e-4, circle_shift(iso)
+    only, pairs = ref.refine(np.full(K.shape, np.nan, np.float32), K, wrong, anchors=(noisy, C, [0, 0, 1.0]))
+    assert pairs == 0 and circle_shift(only) < circle_shift(wrong)
+    with pytest.raises(AppFusionError, match="anchor"):
+        ref.refine(depth, K, wrong, anchors=(noisy, C[:3], None))
+    with pytest.raises(AppFusionError, match="positive"):
+        PoseRefiner(V, F, anchor_sigma=(0.0, 1e-4))
+
+
 def test_open_boundary_points_are_those_near_the_cut_rim():
     """The points within a radius of the mesh's open boundary (a sphere cut open at the bottom, as
     the object box cuts a scan off the plane); none on a closed mesh, none with radius 0."""
