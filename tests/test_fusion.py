@@ -502,6 +502,24 @@ def test_fill_small_holes_closes_small_holes_only():
     assert len(_boundary_loops(fill_small_holes(mesh, 0.002))) == 3   # holes above the radius stay
 
 
+def _mesh_depth(V, F, K, eye, target):
+    """Camera-to-world pose of a camera at ``eye`` looking at ``target`` (z up), and the noise-free
+    depth image (NaN off the mesh) it sees of the mesh ``V, F``."""
+    fwd = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(fwd, [0, 0, 1.0])
+    right /= np.linalg.norm(right)
+    T = make_pose(np.stack([right, np.cross(fwd, right), fwd], 1), eye)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    r = K.rays().astype(np.float64)
+    dirs = (r / np.linalg.norm(r, axis=-1, keepdims=True)) @ T[:3, :3].T
+    rays = np.concatenate([np.broadcast_to(T[:3, 3], dirs.shape), dirs], -1).astype(np.float32)
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    depth = (t / np.linalg.norm(r, axis=-1)).astype(np.float32)
+    depth[~np.isfinite(depth)] = np.nan
+    return T, depth
+
+
 def test_pose_refiner_reregisters_a_frame_to_the_final_mesh():
     """A depth frame of an ellipsoid, its pose off by ~1.6 mm and 0.25 degrees (tracking's jitter):
     re-registered to the mesh, the surface it sees moves back to within 0.2 mm (1.6 mm before); too few pixels on
@@ -512,22 +530,8 @@ def test_pose_refiner_reregisters_a_frame_to_the_final_mesh():
     m.vertices = o3d.utility.Vector3dVector(np.asarray(m.vertices) * [0.05, 0.035, 0.025] + [0.0, 0.0, 0.03])
     V, F = np.asarray(m.vertices), np.asarray(m.triangles)
     K = Intrinsics(320, 240, 290.0, 290.0, 159.5, 119.5)
-    T = make_pose(np.eye(3), [0, 0, 0])
     # camera 0.4 m away looking at the ellipsoid obliquely
-    eye = np.array([0.25, -0.2, 0.25])
-    fwd = -eye / np.linalg.norm(eye)
-    right = np.cross(fwd, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    T = make_pose(np.stack([right, down, fwd], 1), eye)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
-    r = K.rays().astype(np.float64)
-    dirs = (r / np.linalg.norm(r, axis=-1, keepdims=True)) @ T[:3, :3].T
-    rays = np.concatenate([np.broadcast_to(T[:3, 3], dirs.shape), dirs], -1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    depth = (t / np.linalg.norm(r, axis=-1)).astype(np.float32)
-    depth[~np.isfinite(depth)] = np.nan
+    T, depth = _mesh_depth(V, F, K, np.array([0.25, -0.2, 0.25]), np.zeros(3))
     rng = np.random.default_rng(0)
     depth += rng.normal(0, 0.0007, depth.shape).astype(np.float32)          # Kinect-like depth noise
     wrong = make_pose(cv2.Rodrigues(np.radians([0.15, -0.2, 0.1]))[0], [0.0008, -0.001, 0.001]) @ T
@@ -563,19 +567,7 @@ def test_pose_refiner_anchors_fix_what_the_surface_leaves_free():
     m.translate(c)
     V, F = np.asarray(m.vertices), np.asarray(m.triangles)
     K = Intrinsics(320, 240, 290.0, 290.0, 159.5, 119.5)
-    eye = np.array([0.3, -0.25, 0.3])
-    fwd = (c - eye) / np.linalg.norm(c - eye)
-    right = np.cross(fwd, [0, 0, 1.0])
-    right /= np.linalg.norm(right)
-    T = make_pose(np.stack([right, np.cross(fwd, right), fwd], 1), eye)
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
-    r = K.rays().astype(np.float64)
-    dirs = (r / np.linalg.norm(r, axis=-1, keepdims=True)) @ T[:3, :3].T
-    rays = np.concatenate([np.broadcast_to(T[:3, 3], dirs.shape), dirs], -1).astype(np.float32)
-    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-    depth = (t / np.linalg.norm(r, axis=-1)).astype(np.float32)
-    depth[~np.isfinite(depth)] = np.nan
+    T, depth = _mesh_depth(V, F, K, np.array([0.3, -0.25, 0.3]), c)
     # turned 0.3 degrees about the sphere's centre: the same depth, the plane's circles 0.5 mm off
     R = cv2.Rodrigues(np.radians([0.1, -0.15, 0.22]))[0]
     wrong = make_pose(R, c - R @ c) @ T
