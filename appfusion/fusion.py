@@ -122,6 +122,17 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def anchor_information(normal, w_in: float, w_n: float) -> np.ndarray:
+    """(3, 3) weight (information) matrix of an anchor's point-to-point term: ``w_in`` within the
+    support plane and ``w_n`` along its unit ``normal`` (``w_in I + (w_n - w_in) n n^T``); ``w_in I``
+    without a normal."""
+    if normal is None:
+        return np.eye(3) * w_in
+    n = np.asarray(normal, float)
+    n = n / max(float(np.linalg.norm(n)), 1e-12)
+    return np.eye(3) * w_in + (w_n - w_in) * np.outer(n, n)
+
+
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Rigid transform (4x4) minimising ``sum |T src_i - dst_i|^2`` (Kabsch / Umeyama, no scale)."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
@@ -718,13 +729,10 @@ class TSDFFusion:
         if anchors is None or not len(anchors[0]):
             return []
         k = len(anchors[0])
-        eye = np.eye(3) * self.anchor_weight
         if len(anchors) < 3 or anchors[2] is None:
-            return [eye] * k
+            return [anchor_information(None, self.anchor_weight, self.anchor_normal_weight)] * k
         n = np.broadcast_to(np.asarray(anchors[2], float).reshape(-1, 3), (k, 3))
-        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        extra = self.anchor_normal_weight - self.anchor_weight
-        return [eye + extra * np.outer(v, v) for v in n]
+        return [anchor_information(v, self.anchor_weight, self.anchor_normal_weight) for v in n]
 
     def icp(self, src: np.ndarray, tgt_depth: np.ndarray, tgt_normals: np.ndarray, init: np.ndarray,
             max_dist: float, anchors: tuple[np.ndarray, np.ndarray] | None = None

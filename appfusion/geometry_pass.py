@@ -30,8 +30,8 @@ import open3d as o3d
 
 from .errors import AppFusionError, EstimationError
 from .frame import Frame, Intrinsics, invert_pose, transform_points
-from .fusion import (FusionConfig, TSDFFusion, _twist_to_pose, blas_threads, downsample_depth, kabsch,
-                     voxel_size_for_box)
+from .fusion import (FusionConfig, TSDFFusion, _skew, _twist_to_pose, anchor_information, blas_threads,
+                     downsample_depth, kabsch, voxel_size_for_box)
 from .markers import (MarkerConfig, MarkerDetection, MarkerTracker, ObjectBox, detect_markers,
                       marker_config_from_meta)
 from .points import PointGrid, bilateral_filter_normals, sample_points
@@ -764,8 +764,7 @@ class PoseRefiner:
                 c_cam, C_w, W = anc
                 p = c_cam @ T[:3, :3].T + T[:3, 3]
                 for pk, Ck in zip(p, C_w):                                  # d p / d (omega, tau) = [-[p]x, I]
-                    J = np.concatenate([-np.array([[0.0, -pk[2], pk[1]], [pk[2], 0.0, -pk[0]], [-pk[1], pk[0], 0.0]]),
-                                        np.eye(3)], axis=1)
+                    J = np.concatenate([-_skew(pk), np.eye(3)], axis=1)
                     H = H + J.T @ W @ J
                     g = g + J.T @ W @ (Ck - pk)
             xi = np.linalg.solve(H, g)
@@ -787,10 +786,6 @@ class PoseRefiner:
         s_in, s_n = self.anchor_sigma
         nrm = anchors[2] if len(anchors) > 2 else None
         nrm = None if nrm is None else np.asarray(nrm, dtype=np.float64)
-        if nrm is None or not np.isfinite(nrm).all() or np.linalg.norm(nrm) < 1e-9:
-            W = np.eye(3) / s_in ** 2
-        else:
-            nrm = nrm / np.linalg.norm(nrm)
-            nn = np.outer(nrm, nrm)
-            W = (np.eye(3) - nn) / s_in ** 2 + nn / s_n ** 2
-        return c_cam[ok], C_w[ok], W
+        if nrm is not None and (not np.isfinite(nrm).all() or np.linalg.norm(nrm) < 1e-9):
+            nrm = None
+        return c_cam[ok], C_w[ok], anchor_information(nrm, s_in ** -2, s_n ** -2)
