@@ -42,7 +42,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: 8: the IR fits without the leaves at the surface's open boundary, the lobes refitted to the final clusters
 #: and a third colour sweep when a measured lobe moved; 9: complete depth blocks only and marker anchors
 #: weighted 3 in tracking; 10: the anchors' error across the support plane weighted 30, normals filtered
-#: over 128 neighbours; 11: circle centres fitted to the blobs' pixels)
+#: over 128 neighbours; 11: circle centres fitted to the blobs' pixels; 12: the colour pass's rho_s from a
+#: cluster's interior points and the model ladder's significance rule; 13: the geometry fused again at
+#: poses re-registered with the circles)
 CHECKPOINT_VERSION = 13
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
@@ -89,7 +91,7 @@ class ScanConfig:
         After tracking, re-register every geometry frame to the object fused from all of them with
         its circle centres as anchors, and fuse the frames again at those poses
         (:meth:`appfusion.geometry_pass.GeometryPass.refuse`; beyond the paper). Demo: relit error
-        0.072 -> 0.06, the scan ~25 s longer.
+        0.072 -> 0.051, the scan ~15 s longer.
     ir_rim_m : float
         Points within this distance of the fused surface's open boundary (where the object box cut it
         off the support plane) stay out of the IR pass's Ward fits (``rim`` of
