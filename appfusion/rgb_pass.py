@@ -369,7 +369,8 @@ class RGBPass:
 
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
                  bins: int = 64, ratio_range: tuple[float, float] = (1 / 64, 2.0), percentile: float = 10.0,
-                 estimator: str = "lsq", min_lsq_samples: int = 3, ladder_margin: float = 0.002, ladder_z: float = 5.0, interior_m: float = 0.005,
+                 estimator: str = "lsq", min_lsq_samples: int = 3, ladder_margin: float = 0.002,
+                 ladder_z: float = 5.0, interior_m: float = 0.005,
                  specular=None,
                  dark: float = 0.01, saturated: float = 0.98, min_cos: float = math.cos(math.radians(75)),
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
@@ -884,7 +885,6 @@ class RGBPass:
         mean = g_sum / np.maximum(g_n, 1)
         sd = np.sqrt(np.maximum(g_sq / np.maximum(g_n, 1) - mean ** 2, 0.0))
         z = np.where(g_n > 1, mean / np.maximum(sd / np.sqrt(np.maximum(g_n, 1)), 1e-300), 0.0)
-        z = np.where(mean > 0, z, np.minimum(z, 0.0))
         self.model = ["ward" if (self.specular[c] and ok[c].any() and rss[c, 1] < rss[c, 0]
                                  and (rss[c, 1] < (1 - self.ladder_margin) * rss[c, 0] or z[c] >= self.ladder_z))
                       else "diffuse"
@@ -1055,21 +1055,20 @@ class RGBPass:
             if not (lab == c).any():
                 continue
             rs_c = np.asarray(res.rho_s[c], np.float64)
-            if res.model[c] == "diffuse" or rs_c.max() <= 0:
-                cands.append(c)
-                rss.append(vll)
-                var.append(np.zeros_like(vll))
-                continue
             hit = np.flatnonzero(np.isclose(self.compare_alphas, self.alphas[c], rtol=1e-6, atol=0.0))
-            if len(hit) == 0:
+            as_diffuse = res.model[c] == "diffuse" or rs_c.max() <= 0
+            if not as_diffuse and len(hit) == 0:
                 # its lobe was not measured on the other points. A lobe that explains almost none of
                 # its colour (held-out RSS within weak_lobe of diffuse only: the demo's label, 0.02 %)
                 # competes as the diffuse fit it nearly is; a stronger one keeps its points
                 hr = self.heldout_rss
-                if hr is not None and hr[c, 0] > 0 and hr[c, 0] - hr[c, 1] < weak_lobe * hr[c, 0]:
-                    cands.append(c)
-                    rss.append(vll)
-                    var.append(np.zeros_like(vll))
+                if not (hr is not None and hr[c, 0] > 0 and hr[c, 0] - hr[c, 1] < weak_lobe * hr[c, 0]):
+                    continue
+                as_diffuse = True
+            if as_diffuse:
+                cands.append(c)
+                rss.append(vll)
+                var.append(np.zeros_like(vll))
                 continue
             m = int(hit[0])
             own = (self._spec_point & np.isclose(self.point_alpha, self.alphas[c], rtol=1e-6, atol=0.0))[:, None]
