@@ -127,6 +127,8 @@ class FrameState:
         Why the frame is lost or skipped.
     ms : dict
         Milliseconds per step ("markers", "prep", "raycast", "track", "integrate").
+    detection : MarkerDetection or None
+        The circles found in the frame (camera frame), kept for :meth:`GeometryPass.refuse`.
     """
 
     index: int
@@ -138,6 +140,7 @@ class FrameState:
     markers_complete: bool = False
     reason: str = ""
     ms: dict = field(default_factory=dict)
+    detection: MarkerDetection | None = None
 
     @property
     def ok(self) -> bool:
@@ -366,7 +369,7 @@ class GeometryPass:
             pm = invert_pose(self.tracker.marker_to_world()) @ res.pose
         reason = res.reason or marker_reason
         st = FrameState(frame.index, float(frame.timestamp), res.state, res.pose.copy(), pm,
-                        0 if det is None else det.n, bool(det is not None and det.complete), reason, ms)
+                        0 if det is None else det.n, bool(det is not None and det.complete), reason, ms, det)
         self.states.append(st)
         return st
 
@@ -406,8 +409,9 @@ class GeometryPass:
         Parameters
         ----------
         frames : iterable of Frame
-            The frames :meth:`add_frame` saw (again, in any order); those without a tracked pose in
-            the marker frame are left out.
+            The frames :meth:`add_frame` saw (again, in any order; their circles are not looked for
+            again, each frame's state keeps its detection); those without a tracked pose in the
+            marker frame are left out.
         depth_weight : float
             Weight of each depth pixel's term relative to its noise variance.
         anchor_sigma : (float, float)
@@ -438,10 +442,7 @@ class GeometryPass:
                 if st is None or frame.depth is None:
                     continue
                 anchors = None
-                try:
-                    det = detect_markers(frame, self.marker_config, self.config.marker_stream)
-                except AppFusionError:
-                    det = None
+                det = st.detection                               # found while tracking the frame
                 a = self._anchors(det, st.pose) if det is not None and det.n else None
                 if a is not None and len(a[0]):
                     c_cam, C_w, n_w = a

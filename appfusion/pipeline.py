@@ -91,7 +91,7 @@ class ScanConfig:
         After tracking, re-register every geometry frame to the object fused from all of them with
         its circle centres as anchors, and fuse the frames again at those poses
         (:meth:`appfusion.geometry_pass.GeometryPass.refuse`; beyond the paper). Demo: relit error
-        0.072 -> 0.051, the scan ~15 s longer.
+        0.072 -> 0.051, the scan ~7 s longer.
     ir_rim_m : float
         Points within this distance of the fused surface's open boundary (where the object box cut it
         off the support plane) stay out of the IR pass's Ward fits (``rim`` of
