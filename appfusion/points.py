@@ -599,7 +599,8 @@ def _neighbourhoods(P: np.ndarray, radius: float, k: int, seed: int) -> tuple[np
 
 def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s: float | None = None,
                              sigma_n: float = 0.35, iterations: int = 2, k: int = 32, seed: int = 0,
-                             local_linear: bool = True) -> np.ndarray:
+                             local_linear: bool = True, adaptive_stages: tuple[int, ...] = (),
+                             adaptive_c: float = 2.5) -> np.ndarray:
     """Bilateral filter of point normals (paper §4.1, after Fleishman et al. 2003).
 
     Each normal becomes the normalised average of its neighbours' normals weighted by a spatial
@@ -635,6 +636,21 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         Neighbours per point.
     local_linear : bool
         First-order (local-linear) instead of the plain weighted average, see above.
+    adaptive_stages : tuple of int
+        Further passes after ``iterations``, in stages (beyond the paper): each point keeps the
+        smoothest stage whose normal moved from the previous stage's by at most ``adaptive_c`` times
+        the median move of that stage over all points, and none after the first it fails. More
+        passes smooth more (a wider effective kernel) but bias the normal where the curvature
+        changes, e.g. where a cylinder meets its hemispherical cap: the local-linear fit assumes
+        the normal varies linearly. A point near such a change moves much more between stages than
+        noise makes points elsewhere move, and stops there (a simple form of the intersection of
+        confidence intervals rule for choosing a local bandwidth: Katkovnik 1999, "A new method for
+        varying adaptive bandwidth selection", IEEE Trans. Signal Processing 47(9)). On the demo
+        capsule (3 mm, 128 neighbours, 3 passes, then stages of 3 and 6): median error on the
+        cap 0.204 -> 0.135 degrees, cylinder 0.216 -> 0.116, along the cap's seam 0.559 -> 0.563
+        (12 passes everywhere: 0.134, 0.118, 2.22).
+    adaptive_c : float
+        The stage test's multiple of the median move.
 
     Returns
     -------
@@ -657,34 +673,67 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         raise AppFusionError(f"bilateral_filter_normals: sigma_s must be positive, got {sigma_s}")
     j, d, valid = _neighbourhoods(P, 2.0 * sigma_s, k, seed)
     ws = np.where(valid, np.exp(-0.5 * (d / sigma_s) ** 2), 0.0)
-    X = (P[j] - P[:, None, :]) / sigma_s if local_linear else None    # (N, k, 3), in units of sigma_s
-    Ncur = N0
-    for _ in range(int(iterations)):
-        Nj = Ncur[j]                                            # (N, k, 3)
-        dn2 = ((Nj - Ncur[:, None, :]) ** 2).sum(-1)
-        w = ws * np.exp(-0.5 * dn2 / sigma_n ** 2)
-        acc = (w[..., None] * Nj).sum(1) + 1e-12 * Ncur
-        if local_linear:
-            acc = _local_linear_value(X, w, Nj, Ncur, acc)
-        Ncur = acc / np.linalg.norm(acc, axis=1, keepdims=True)
-    return Ncur
+    # neighbour offsets in units of sigma_s, one contiguous (N, k) array per axis (the passes read them
+    # per component: strided (N, k, 3) slices were most of their time)
+    X = [(P[j, c] - P[:, None, c]) / sigma_s for c in range(3)] if local_linear else None
+    stages = [int(s) for s in adaptive_stages]
+    if any(s < 1 for s in stages) or not (np.isfinite(adaptive_c) and adaptive_c > 0):
+        raise AppFusionError(f"bilateral_filter_normals: adaptive stages must be positive pass counts and "
+                             f"adaptive_c > 0, got {tuple(adaptive_stages)}, {adaptive_c}")
+
+    def passes(Ncur: np.ndarray, count: int) -> np.ndarray:
+        for _ in range(count):
+            Nj = [Ncur[:, c][j] for c in range(3)]              # neighbours' normals, (N, k) per axis
+            dn2 = (Nj[0] - Ncur[:, None, 0]) ** 2
+            dn2 += (Nj[1] - Ncur[:, None, 1]) ** 2
+            dn2 += (Nj[2] - Ncur[:, None, 2]) ** 2
+            w = ws * np.exp(-0.5 * dn2 / sigma_n ** 2)
+            acc = np.stack([(w * Nj[c]).sum(1) for c in range(3)], 1) + 1e-12 * Ncur
+            if local_linear:
+                acc = _local_linear_value(X, w, Nj, Ncur, acc)
+            Ncur = acc / np.linalg.norm(acc, axis=1, keepdims=True)
+        return Ncur
+
+    Ncur = passes(N0, int(iterations))
+    if not stages:
+        return Ncur
+    out, alive = Ncur.copy(), np.ones(len(P), bool)
+    for count in stages:
+        Nnext = passes(Ncur, count)
+        move = np.einsum("nc,nc->n", Nnext, Ncur)               # cos of each point's move
+        ang = np.arccos(np.clip(move, -1.0, 1.0))
+        alive &= ang <= adaptive_c * np.median(ang)
+        out[alive] = Nnext[alive]
+        Ncur = Nnext
+    return out
 
 
-def _local_linear_value(X: np.ndarray, w: np.ndarray, Nj: np.ndarray, Ncur: np.ndarray,
+def _local_linear_value(X: list, w: np.ndarray, Nj: list, Ncur: np.ndarray,
                         fallback: np.ndarray) -> np.ndarray:
     """Value at each point of the weighted least-squares plane ``n ~ a + b u + c v`` through its
     neighbours' normals (``bilateral_filter_normals(local_linear=True)``).
 
-    X : (N, k, 3) neighbour offsets (units of sigma_s); w : (N, k) weights; Nj : (N, k, 3) their
-    normals; Ncur : (N, 3) the points' normals (define the tangent plane); fallback : (N, 3) the
+    X : three (N, k) neighbour offsets (x, y, z; units of sigma_s); w : (N, k) weights; Nj : three
+    (N, k) components of their normals; Ncur : (N, 3) the points' normals (define the tangent plane); fallback : (N, 3) the
     plain weighted sums, kept where the 3 x 3 normal equations are ill-conditioned (neighbours on a
     line, one neighbour) or the fitted value turns away from the average.
     """
     F = local_frame(Ncur)                                   # rows t, b, n; the fit's value at the point
     t1, t2 = F[:, 0], F[:, 1]                               # does not depend on the tangent basis
-    A = np.stack([np.ones(w.shape), np.einsum("nkc,nc->nk", X, t1), np.einsum("nkc,nc->nk", X, t2)], -1)
-    M = np.einsum("nk,nki,nkj->nij", w, A, A)
-    R = np.einsum("nk,nki,nkc->nic", w, A, Nj)
+    # the 3 x 3 normal equations M a = R of the basis (1, u, v), their sums written out (the three-operand
+    # einsums they replace took two thirds of the filter's time)
+    u = X[0] * t1[:, None, 0]
+    u += X[1] * t1[:, None, 1]
+    u += X[2] * t1[:, None, 2]
+    v = X[0] * t2[:, None, 0]
+    v += X[1] * t2[:, None, 1]
+    v += X[2] * t2[:, None, 2]
+    wu, wv = w * u, w * v
+    s_1, s_u, s_v = w.sum(1), wu.sum(1), wv.sum(1)
+    s_uu, s_uv, s_vv = (wu * u).sum(1), (wu * v).sum(1), (wv * v).sum(1)
+    M = np.stack([np.stack([s_1, s_u, s_v], -1), np.stack([s_u, s_uu, s_uv], -1),
+                  np.stack([s_v, s_uv, s_vv], -1)], 1)
+    R = np.stack([np.stack([(g * Nj[c]).sum(1) for c in range(3)], 1) for g in (w, wu, wv)], 1)
     s0 = M[:, 0, 0]
     # conditioning: the tangent spread (second moments about the centroid) must cover both directions
     ok = s0 > 1e-12

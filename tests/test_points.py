@@ -223,6 +223,45 @@ def test_local_linear_filter_removes_the_centroid_bias_on_a_cylinder():
     assert np.allclose(bilateral_filter_normals(L, NL, sigma_s=0.002), NL)
 
 
+def test_adaptive_stages_smooth_where_the_surface_allows_and_stop_at_a_curvature_change():
+    """A capsule (cylinder + hemispherical cap, as the demo's object): more passes of the local-linear
+    filter lower the noise everywhere but bias the normals along the seam, where the curvature jumps;
+    the adaptive stages take the extra passes only where they move a normal no more than noise does."""
+    rng = np.random.default_rng(11)
+    R, H, n = 0.04, 0.11, 20000
+    on_cap = rng.random(n) < (2 * np.pi * R * R) / (2 * np.pi * R * H + 2 * np.pi * R * R)
+    phi, z = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, H, n)
+    u = rng.normal(size=(n, 3))
+    u[:, 2] = np.abs(u[:, 2])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    side = np.stack([np.cos(phi), np.sin(phi), 0 * phi], 1)
+    truth = np.where(on_cap[:, None], u, side)
+    P = np.where(on_cap[:, None], [0, 0, H] + R * u, np.stack([R * side[:, 0], R * side[:, 1], z], 1))
+    noisy = truth + rng.normal(0, 0.05, truth.shape)
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    seam = np.abs(P[:, 2] - H) < 0.004
+    smooth = ~seam & (P[:, 2] > 0.015)
+
+    def err(N, m):
+        return np.median(np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", N, truth), -1, 1)))[m])
+
+    kw = dict(sigma_s=0.004, sigma_n=0.25, k=32)
+    plain = bilateral_filter_normals(P, noisy, iterations=3, **kw)
+    many = bilateral_filter_normals(P, noisy, iterations=12, **kw)
+    adaptive = bilateral_filter_normals(P, noisy, iterations=3, adaptive_stages=(3, 6), **kw)
+    assert np.allclose(np.linalg.norm(adaptive, axis=1), 1)
+    # measured: smooth parts 0.43 / 0.25 / 0.23 degrees, seam 1.8 / 4.7 / 1.8
+    assert err(many, smooth) < 0.7 * err(plain, smooth) and err(many, seam) > 2 * err(plain, seam)
+    assert err(adaptive, smooth) < 0.7 * err(plain, smooth)
+    assert err(adaptive, seam) < 1.1 * err(plain, seam)
+    # no stages: the plain filter, bit for bit
+    assert np.array_equal(bilateral_filter_normals(P, noisy, iterations=3, adaptive_stages=(), **kw), plain)
+    with pytest.raises(AppFusionError):
+        bilateral_filter_normals(P, noisy, adaptive_stages=(0,))
+    with pytest.raises(AppFusionError):
+        bilateral_filter_normals(P, noisy, adaptive_stages=(3,), adaptive_c=0.0)
+
+
 def test_bilateral_denoise_points_reduces_noise():
     rng = np.random.default_rng(5)
     mesh = o3d.geometry.TriangleMesh.create_sphere(0.1, 80)
