@@ -61,6 +61,41 @@ def _check_points(positions: np.ndarray, normals: np.ndarray | None, where: str)
     return P, normals
 
 
+def interior_mask(positions: np.ndarray, labels: np.ndarray, radius: float) -> np.ndarray:
+    """Points farther than ``radius`` from every point of another label (beyond the paper).
+
+    Along a material seam a point's registered pixels (IR and colour) and its neighbourhood mix both
+    materials; the per-cluster estimates that such mixtures bias (a cluster's rho_s in the colour
+    pass, its IR lobe refitted to the final clusters) pool only the points this leaves True.
+
+    Parameters
+    ----------
+    positions : (N, 3) array, metres
+    labels : (N,) int array
+    radius : float, metres (0: every point is interior)
+
+    Returns
+    -------
+    (N,) bool array
+    """
+    P = np.asarray(positions, dtype=np.float64)
+    lab = np.asarray(labels)
+    if P.ndim != 2 or P.shape[1] != 3 or lab.shape != (len(P),):
+        raise AppFusionError(f"interior_mask: need (N, 3) positions and (N,) labels, got {P.shape} and {lab.shape}")
+    if not (np.isfinite(radius) and radius >= 0):
+        raise AppFusionError(f"interior_mask: radius must be finite and >= 0, got {radius}")
+    far = np.ones(len(P), bool)
+    if radius == 0:
+        return far
+    for c in np.unique(lab):
+        m = lab == c
+        if m.all():
+            continue
+        d, _ = cKDTree(P[~m]).query(P[m], distance_upper_bound=radius)
+        far[m] = ~(d <= radius)
+    return far
+
+
 def check_oriented_points(positions, normals, where: str) -> tuple[np.ndarray, np.ndarray]:
     """Validated surface points: (N, 3) float64 positions (N >= 1) and their normals made unit length.
 

@@ -70,7 +70,7 @@ from .diffuse_term import envmap_check
 from .double_product import DoubleProductTables
 from .errors import AppFusionError
 from .frame import Intrinsics, invert_pose
-from .points import check_oriented_points
+from .points import check_oriented_points, interior_mask
 
 __all__ = ["RGBPass", "RGBResult", "histogram_percentile"]
 
@@ -815,15 +815,7 @@ class RGBPass:
         lab = self.labels
         key = (hashlib.blake2b(lab.tobytes(), digest_size=16).digest(), self.interior_m)
         if self._interior_key != key:
-            far = np.ones(len(lab), bool)
-            if self.interior_m > 0 and self.n_clusters > 1:
-                for c in np.unique(lab):
-                    m = lab == c
-                    if m.all():
-                        continue
-                    d, _ = cKDTree(self.positions[~m]).query(self.positions[m], distance_upper_bound=self.interior_m)
-                    far[m] = ~(d <= self.interior_m)
-            self._interior_far, self._interior_key = far, key
+            self._interior_far, self._interior_key = interior_mask(self.positions, lab, self.interior_m), key
         inner = use & self._interior_far
         C = self.n_clusters
         n_use = np.bincount(lab[use], minlength=C)

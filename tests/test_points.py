@@ -262,6 +262,23 @@ def test_adaptive_stages_smooth_where_the_surface_allows_and_stop_at_a_curvature
         bilateral_filter_normals(P, noisy, adaptive_stages=(3,), adaptive_c=0.0)
 
 
+def test_interior_mask_leaves_out_the_points_near_another_label():
+    from appfusion.points import interior_mask
+
+    rng = np.random.default_rng(2)
+    P = np.c_[rng.uniform(-0.05, 0.05, (20000, 2)), np.zeros(20000)]
+    lab = (P[:, 0] > 0.01).astype(np.int64)               # a seam at x = 1 cm
+    far = interior_mask(P, lab, 0.005)
+    gap = np.abs(P[:, 0] - 0.01)
+    assert not far[gap < 0.003].any()                    # within 3 mm of the seam: out
+    assert far[gap > 0.006].all()                        # beyond 6 mm: in
+    assert interior_mask(P, lab, 0.0).all() and interior_mask(P, np.zeros(20000, int), 0.005).all()
+    with pytest.raises(AppFusionError):
+        interior_mask(P, lab[:10], 0.005)
+    with pytest.raises(AppFusionError):
+        interior_mask(P, lab, -1.0)
+
+
 def test_bilateral_denoise_points_reduces_noise():
     rng = np.random.default_rng(5)
     mesh = o3d.geometry.TriangleMesh.create_sphere(0.1, 80)
