@@ -101,8 +101,8 @@ class ScanConfig:
         The colour pass's refits of the IR lobes to its clusters read only the points farther than this
         from another cluster (metres; :func:`appfusion.points.interior_mask`): along a seam a label
         point's IR pixels include the paint's sharp highlight. Seed 1's label (truth 0.35) refitted
-        0.319 with every point, 0.3225 even with the true labels, 0.337 at 5 mm and 0.340 at 10 mm.
-        0 uses every point.
+        0.319 with every point, 0.3225 even with the true labels, 0.337 at 5 mm and 0.340 at 10 mm
+        on one geometry (end to end 0.319-0.324 -> 0.327-0.329). 0 uses every point.
     ir_pattern : bool
         Calibrate the IR emitter's fixed pattern from the calibration sheet and divide it out of every
         IR sample (:mod:`calibration.ir_pattern`; beyond the paper's stationary-noise model, §6).

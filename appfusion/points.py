@@ -680,8 +680,8 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         the normal varies linearly. A point near such a change moves much more between stages than
         noise makes points elsewhere move, and stops there (a simple form of the intersection of
         confidence intervals rule for choosing a local bandwidth: Katkovnik 1999, "A new method for
-        varying adaptive bandwidth selection", IEEE Trans. Signal Processing 47(9)). On the demo
-        capsule (3 mm, 128 neighbours, 3 passes, then stages of 3 and 6): median error on the
+        varying adaptive bandwidth selection", IEEE Trans. Signal Processing 47(9)). On the capsule
+        of the seed-1 demo scene (3 mm, 128 neighbours, 3 passes, then stages of 3 and 6): median error on the
         cap 0.204 -> 0.135 degrees, cylinder 0.216 -> 0.116, along the cap's seam 0.559 -> 0.563
         (12 passes everywhere: 0.134, 0.118, 2.22).
     adaptive_c : float
@@ -749,9 +749,10 @@ def _local_linear_value(X: list, w: np.ndarray, Nj: list, Ncur: np.ndarray,
     neighbours' normals (``bilateral_filter_normals(local_linear=True)``).
 
     X : three (N, k) neighbour offsets (x, y, z; units of sigma_s); w : (N, k) weights; Nj : three
-    (N, k) components of their normals; Ncur : (N, 3) the points' normals (define the tangent plane); fallback : (N, 3) the
-    plain weighted sums, kept where the 3 x 3 normal equations are ill-conditioned (neighbours on a
-    line, one neighbour) or the fitted value turns away from the average.
+    (N, k) components of their normals; Ncur : (N, 3) the points' normals (define the tangent
+    plane); fallback : (N, 3) the plain weighted sums, kept where the 3 x 3 normal equations are
+    ill-conditioned (neighbours on a line, one neighbour) or the fitted value turns away from the
+    average.
     """
     F = local_frame(Ncur)                                   # rows t, b, n; the fit's value at the point
     t1, t2 = F[:, 0], F[:, 1]                               # does not depend on the tangent basis
