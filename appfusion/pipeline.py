@@ -1110,17 +1110,14 @@ class ScanRunner:
         """``labels`` with the points within ``ir_interior_m`` of another cluster moved to an extra label
         (``labels.max() + 1``) that no cluster's refit reads; a cluster that would keep under a quarter
         of its points keeps them all (as the colour pass's interior rule, ``RGBPass.interior_m``)."""
-        from .points import interior_mask
+        from .points import interior_mask, interior_or_all
 
         r = float(self.config.ir_interior_m)
         lab = np.asarray(labels)
         if r <= 0 or self.points is None or lab.size == 0 or lab.max() == lab.min():
             return lab
-        far = interior_mask(self.points[0], lab, r)
-        k = int(lab.max()) + 1
-        n_all, n_far = np.bincount(lab, minlength=k), np.bincount(lab[far], minlength=k)
-        keep = far | (n_far < 0.25 * n_all)[lab]
-        return np.where(keep, lab, k).astype(lab.dtype)
+        keep = interior_or_all(interior_mask(self.points[0], lab, r), lab)
+        return np.where(keep, lab, int(lab.max()) + 1).astype(lab.dtype)
 
     # -- labels and painting ---------------------------------------------------------------------------
     def _current_labels(self) -> np.ndarray:

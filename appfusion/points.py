@@ -96,6 +96,19 @@ def interior_mask(positions: np.ndarray, labels: np.ndarray, radius: float) -> n
     return far
 
 
+def interior_or_all(far: np.ndarray, labels: np.ndarray, use: np.ndarray | None = None,
+                    min_fraction: float = 0.25) -> np.ndarray:
+    """The points of ``use`` (default all) that are ``far`` (:func:`interior_mask`), per label where
+    at least ``min_fraction`` of its points in ``use`` are; a label with fewer keeps all of its
+    points in ``use`` (a small cluster that is all seam still gets an estimate). (N,) bool."""
+    lab = np.asarray(labels)
+    use = np.ones(len(lab), bool) if use is None else np.asarray(use, bool)
+    inner = use & np.asarray(far, bool)
+    k = int(lab.max()) + 1 if lab.size else 0
+    enough = np.bincount(lab[inner], minlength=k) >= min_fraction * np.bincount(lab[use], minlength=k)
+    return np.where(enough[lab], inner, use)
+
+
 def check_oriented_points(positions, normals, where: str) -> tuple[np.ndarray, np.ndarray]:
     """Validated surface points: (N, 3) float64 positions (N >= 1) and their normals made unit length.
 

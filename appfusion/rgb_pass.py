@@ -70,7 +70,7 @@ from .diffuse_term import envmap_check
 from .double_product import DoubleProductTables
 from .errors import AppFusionError
 from .frame import Intrinsics, invert_pose
-from .points import check_oriented_points, interior_mask
+from .points import check_oriented_points, interior_mask, interior_or_all
 
 __all__ = ["RGBPass", "RGBResult", "histogram_percentile"]
 
@@ -816,12 +816,7 @@ class RGBPass:
         key = (hashlib.blake2b(lab.tobytes(), digest_size=16).digest(), self.interior_m)
         if self._interior_key != key:
             self._interior_far, self._interior_key = interior_mask(self.positions, lab, self.interior_m), key
-        inner = use & self._interior_far
-        C = self.n_clusters
-        n_use = np.bincount(lab[use], minlength=C)
-        n_in = np.bincount(lab[inner], minlength=C)
-        enough = n_in >= 0.25 * n_use
-        return np.where(enough[lab], inner, use)
+        return interior_or_all(self._interior_far, lab, use)
 
     def _lsq(self, rd_pct: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Joint least squares of Eq. 5: rho_d per point, rho_s per cluster, from the running sums.

@@ -263,7 +263,7 @@ def test_adaptive_stages_smooth_where_the_surface_allows_and_stop_at_a_curvature
 
 
 def test_interior_mask_leaves_out_the_points_near_another_label():
-    from appfusion.points import interior_mask
+    from appfusion.points import interior_mask, interior_or_all
 
     rng = np.random.default_rng(2)
     P = np.c_[rng.uniform(-0.05, 0.05, (20000, 2)), np.zeros(20000)]
@@ -273,6 +273,13 @@ def test_interior_mask_leaves_out_the_points_near_another_label():
     assert not far[gap < 0.003].any()                    # within 3 mm of the seam: out
     assert far[gap > 0.006].all()                        # beyond 6 mm: in
     assert interior_mask(P, lab, 0.0).all() and interior_mask(P, np.zeros(20000, int), 0.005).all()
+    # a label that is mostly seam keeps all its points; the others only their interior
+    lab3 = np.where(np.abs(P[:, 0] - 0.03) < 0.004, 2, lab)        # a 8 mm strip inside label 1
+    keep = interior_or_all(interior_mask(P, lab3, 0.005), lab3)
+    assert keep[lab3 == 2].all()
+    assert not keep[(lab3 != 2) & (gap < 0.003)].any() and keep[(lab3 == 0) & (gap > 0.006)].all()
+    use = P[:, 1] > 0                                                 # and only points of ``use``
+    assert not interior_or_all(interior_mask(P, lab3, 0.005), lab3, use)[~use].any()
     with pytest.raises(AppFusionError):
         interior_mask(P, lab[:10], 0.005)
     with pytest.raises(AppFusionError):
