@@ -694,9 +694,9 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         noise makes points elsewhere move, and stops there (a simple form of the intersection of
         confidence intervals rule for choosing a local bandwidth: Katkovnik 1999, "A new method for
         varying adaptive bandwidth selection", IEEE Trans. Signal Processing 47(9)). On the capsule
-        of the seed-1 demo scene (3 mm, 128 neighbours, 3 passes, then stages of 3 and 6): median error on the
-        cap 0.204 -> 0.135 degrees, cylinder 0.216 -> 0.116, along the cap's seam 0.559 -> 0.563
-        (12 passes everywhere: 0.134, 0.118, 2.22).
+        of the seed-1 demo scene (3 mm, 128 neighbours, 3 passes, then stages of 3 and 6): median
+        error on the cap 0.204 -> 0.135 degrees, cylinder 0.216 -> 0.116, along the cap's seam
+        0.559 -> 0.563 (12 passes everywhere: 0.134, 0.118, 2.22).
     adaptive_c : float
         The stage test's multiple of the median move.
 
@@ -719,15 +719,15 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         sigma_s = 3.0 * mean_spacing(P)
     if not sigma_s > 0:
         raise AppFusionError(f"bilateral_filter_normals: sigma_s must be positive, got {sigma_s}")
+    stages = [int(s) for s in adaptive_stages]
+    if any(s < 1 for s in stages) or not (np.isfinite(adaptive_c) and adaptive_c > 0):
+        raise AppFusionError(f"bilateral_filter_normals: adaptive stages must be positive pass counts and "
+                             f"adaptive_c > 0, got {tuple(adaptive_stages)}, {adaptive_c}")
     j, d, valid = _neighbourhoods(P, 2.0 * sigma_s, k, seed)
     ws = np.where(valid, np.exp(-0.5 * (d / sigma_s) ** 2), 0.0)
     # neighbour offsets in units of sigma_s, one contiguous (N, k) array per axis (the passes read them
     # per component: strided (N, k, 3) slices were most of their time)
     X = [(P[j, c] - P[:, None, c]) / sigma_s for c in range(3)] if local_linear else None
-    stages = [int(s) for s in adaptive_stages]
-    if any(s < 1 for s in stages) or not (np.isfinite(adaptive_c) and adaptive_c > 0):
-        raise AppFusionError(f"bilateral_filter_normals: adaptive stages must be positive pass counts and "
-                             f"adaptive_c > 0, got {tuple(adaptive_stages)}, {adaptive_c}")
 
     def passes(Ncur: np.ndarray, count: int) -> np.ndarray:
         for _ in range(count):
@@ -751,6 +751,8 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         move = np.einsum("nc,nc->n", Nnext, Ncur)               # cos of each point's move
         ang = np.arccos(np.clip(move, -1.0, 1.0))
         alive &= ang <= adaptive_c * np.median(ang)
+        if not alive.any():                                     # no point takes later stages
+            break
         out[alive] = Nnext[alive]
         Ncur = Nnext
     return out
