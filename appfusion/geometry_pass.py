@@ -441,7 +441,7 @@ class GeometryPass:
         new = TSDFFusion(self.fusion.intrinsics, self.fusion.config)
         if self.fusion.roi is not None:
             new.set_roi(*self.fusion.roi)
-        n = 0
+        n, refused = 0, set()
         with blas_threads(1):
             for frame in frames:
                 st = by_index.get(frame.index)
@@ -463,9 +463,17 @@ class GeometryPass:
                 d_int = downsample_depth(frame.depth, new.f_int)
                 new.integrate(new._mask_roi(d_int, new.K_int, pose), pose)
                 st.pose, st.pose_marker = pose, pm
+                refused.add(st.index)
                 n += 1
         if n:
             self.fusion = new
+            # the circle centres again, from the same detections at the refined poses: the marker
+            # frame the mesh and every pose are put in (MarkerTracker.refit)
+            if self.tracker.refit((by_index[f].detection, by_index[f].pose) for f in refused):
+                W2M = invert_pose(self.tracker.marker_to_world())
+                for st in by_index.values():
+                    if st.index in refused:
+                        st.pose_marker = W2M @ st.pose
         return n
 
     def result(self, n_points: int | None = None, require_markers: bool = True) -> GeometryResult:

@@ -69,6 +69,7 @@ def test_a_circle_detected_twice_keeps_the_frame_anchored():
     C = np.array([[0.15, -0.15, 0.0], [0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0]])
     gp.tracker.sums[:] = C
     gp.tracker.counts[:] = 1
+    gp.tracker.weights[:] = 1
     gp.tracker.normal_sum[:] = [0, 0, 2.0]
     gp.fusion = SimpleNamespace(predicted_pose=lambda: np.eye(4), lost=False)
     seen = C[[0, 1, 3, 1]] + np.array([[0.002, 0, 0], [0.0, 0.003, 0], [0, 0, 0.001], [0.006, 0.0, 0.0]])
