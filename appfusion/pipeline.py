@@ -45,8 +45,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: over 128 neighbours; 11: circle centres fitted to the blobs' pixels; 12: the colour pass's rho_s from a
 #: cluster's interior points and the model ladder's significance rule; 13: the geometry fused again at
 #: poses re-registered with the circles; 14: normals filtered in adaptive stages; 15: the environment map
-#: splatted with a 0.25 px pixel kernel; 16: circle centres weighted by their view's elevation and
-#: fused again at the refused poses)
+#: splatted with a 0.25 px pixel kernel; 16: circle centres and anchors weighted by their view's
+#: elevation, the centres fused again at the refused poses)
 CHECKPOINT_VERSION = 16
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
