@@ -46,8 +46,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: cluster's interior points and the model ladder's significance rule; 13: the geometry fused again at
 #: poses re-registered with the circles; 14: normals filtered in adaptive stages; 15: the environment map
 #: splatted with a 0.25 px pixel kernel; 16: circle centres and anchors weighted by their view's
-#: elevation, the centres fused again at the refused poses)
-CHECKPOINT_VERSION = 16
+#: elevation, the centres fused again at the refused poses; 17: a third adaptive stage of the normal
+#: filter, 12 passes)
+CHECKPOINT_VERSION = 17
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
