@@ -42,6 +42,18 @@ def test_a_scan_stopped_midway_resumes_from_its_checkpoints(kinect_sphere, tmp_p
     assert json.loads(key)["engine"] == CHECKPOINT_VERSION
 
 
+def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect_sphere, tmp_path):
+    import pytest
+
+    from appfusion.errors import AppFusionError
+
+    with pytest.raises(AppFusionError, match="refuse_rounds must be at least 1"):
+        _run(kinect_sphere, tmp_path / "zero", refuse_rounds=0)
+    assert not (tmp_path / "zero" / "state").exists()
+    r, _ = _run(kinect_sphere, tmp_path / "two", stop_at="ir", refuse_rounds=2)
+    assert any("fused again (2 rounds" in m for m in r.messages), r.messages
+
+
 def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere, tmp_path):
     """The IR checkpoint holds the BRDF cut's leaf HBSABs: a scan resumed after the IR stage rebuilds
     the cut from the points, takes the buffers back and refits the colour pass's clusters from them
