@@ -122,29 +122,15 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def anchor_information(normal, w_in: float, w_n: float, view=None) -> np.ndarray:
+def anchor_information(normal, w_in: float, w_n: float) -> np.ndarray:
     """(3, 3) weight (information) matrix of an anchor's point-to-point term: ``w_in`` within the
     support plane and ``w_n`` along its unit ``normal`` (``w_in I + (w_n - w_in) n n^T``); ``w_in I``
-    without a normal.
-
-    With ``view``, the line of sight from the camera to the anchor (any length, same frame), the
-    in-plane direction ``v`` along that line of sight weighs ``w_in sin(e)^2`` instead, ``e`` the
-    elevation of the line of sight above the plane: a circle seen at a grazing angle is a thin
-    ellipse whose centre is that much less certain along ``v`` (as in
-    :func:`appfusion.markers.view_weight`), while across it the pixels constrain it as well as
-    ever. That is ``w_in (I - n n^T - cos(e)^2 v v^T) + w_n n n^T``.
-    """
+    without a normal."""
     if normal is None:
         return np.eye(3) * w_in
     n = np.asarray(normal, float)
     n = n / max(float(np.linalg.norm(n)), 1e-12)
-    M = np.eye(3) * w_in + (w_n - w_in) * np.outer(n, n)
-    if view is not None:
-        r = np.asarray(view, float)
-        r = r / max(float(np.linalg.norm(r)), 1e-12)
-        v = r - (r @ n) * n                         # length cos(e)
-        M -= w_in * np.outer(v, v)
-    return M
+    return np.eye(3) * w_in + (w_n - w_in) * np.outer(n, n)
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -732,15 +718,13 @@ class TSDFFusion:
             return out
         return out, vertex_normals(out, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
 
-    def _anchor_information(self, anchors, rotation: np.ndarray | None = None) -> list:
+    def _anchor_information(self, anchors) -> list:
         """Per anchor, the 3 x 3 weight (information) matrix of its point-to-point term.
 
         ``anchor_weight * I`` without normals; with a normal ``n`` (the support plane's),
         ``anchor_weight (I - n n^T) + anchor_normal_weight n n^T``: a circle centre found on the
         depth's plane (:func:`appfusion.markers.circle_on_plane`) is far better known across the
-        plane than within it (see :class:`FusionConfig`). With the camera's ``rotation`` (camera to
-        world, the pose being refined), the in-plane direction along each anchor's line of sight
-        weighs ``sin(e)^2`` of that (:func:`anchor_information`).
+        plane than within it (see :class:`FusionConfig`).
         """
         if anchors is None or not len(anchors[0]):
             return []
@@ -748,8 +732,7 @@ class TSDFFusion:
         if len(anchors) < 3 or anchors[2] is None:
             return [anchor_information(None, self.anchor_weight, self.anchor_normal_weight)] * k
         n = np.broadcast_to(np.asarray(anchors[2], float).reshape(-1, 3), (k, 3))
-        rays = [None] * k if rotation is None else np.asarray(anchors[0], float).reshape(-1, 3) @ np.asarray(rotation).T
-        return [anchor_information(v, self.anchor_weight, self.anchor_normal_weight, r) for v, r in zip(n, rays)]
+        return [anchor_information(v, self.anchor_weight, self.anchor_normal_weight) for v in n]
 
     def icp(self, src: np.ndarray, tgt_depth: np.ndarray, tgt_normals: np.ndarray, init: np.ndarray,
             max_dist: float, anchors: tuple[np.ndarray, np.ndarray] | None = None
@@ -791,7 +774,7 @@ class TSDFFusion:
         cfg = self.config
         K = self.K_trk
         T = init.copy()
-        anchor_info = self._anchor_information(anchors, np.asarray(init, dtype=np.float64)[:3, :3])
+        anchor_info = self._anchor_information(anchors)
         src_normals = vertex_normals(src, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
         levels = []
         for lev in range(len(cfg.track_iterations)):

@@ -413,9 +413,8 @@ class GeometryPass:
         since their errors are correlated), then a fresh TSDF (same voxel size, region and surface
         volume) integrates every frame at its new pose, and :meth:`result` extracts that one.
         Demo: poses 0.28 -> 0.12 mm (ICP to the mesh alone: 0.15, worse than tracking at steep
-        views where the object constrains the pose least); see docs/geometry-pass.md. Each anchor's
-        in-plane weight along its line of sight is scaled by ``sin(e)^2`` of its elevation, and
-        afterwards the circle centres are fused again from the same detections at the new poses
+        views where the object constrains the pose least); see docs/geometry-pass.md. Afterwards the
+        circle centres are fused again from the same detections at the new poses
         (:meth:`appfusion.markers.MarkerTracker.refit`): the marker frame the result is put in.
 
         Parameters
@@ -757,7 +756,7 @@ class PoseRefiner:
         Pc = np.stack([(u[ok] - intrinsics.cx) / intrinsics.fx * z, (v[ok] - intrinsics.cy) / intrinsics.fy * z, z], 1)
         Pw = Pc @ T[:3, :3].T + T[:3, 3]
         Pc = Pc[np.all((Pw > self.lo) & (Pw < self.hi), axis=1)]
-        anc = self._anchor_terms(anchors, T[:3, :3])
+        anc = self._anchor_terms(anchors)
         if len(Pc) < self.min_pairs and anc is None:
             return T.copy(), 0
         total = np.zeros(6)
@@ -784,9 +783,9 @@ class PoseRefiner:
             elif anc is None:
                 return np.asarray(pose, dtype=np.float64).copy(), 0
             if anc is not None:
-                c_cam, C_w, Ws = anc
+                c_cam, C_w, W = anc
                 p = c_cam @ T[:3, :3].T + T[:3, 3]
-                for pk, Ck, W in zip(p, C_w, Ws):                           # d p / d (omega, tau) = [-[p]x, I]
+                for pk, Ck in zip(p, C_w):                                  # d p / d (omega, tau) = [-[p]x, I]
                     J = np.concatenate([-_skew(pk), np.eye(3)], axis=1)
                     H = H + J.T @ W @ J
                     g = g + J.T @ W @ (Ck - pk)
@@ -795,10 +794,8 @@ class PoseRefiner:
             T = _twist_to_pose(xi) @ T
         return T, used
 
-    def _anchor_terms(self, anchors, rotation: np.ndarray | None = None):
-        """(centres_cam, centres_world, [W per anchor]) of :meth:`refine`'s anchors, or None; with the
-        camera's ``rotation`` (camera to world) each anchor's in-plane weight along its line of sight
-        is scaled by ``sin(e)^2`` (:func:`appfusion.fusion.anchor_information`)."""
+    def _anchor_terms(self, anchors):
+        """(centres_cam, centres_world, W) of :meth:`refine`'s anchors, or None."""
         if anchors is None:
             return None
         c_cam = np.asarray(anchors[0], dtype=np.float64).reshape(-1, 3)
@@ -813,6 +810,4 @@ class PoseRefiner:
         nrm = None if nrm is None else np.asarray(nrm, dtype=np.float64)
         if nrm is not None and (not np.isfinite(nrm).all() or np.linalg.norm(nrm) < 1e-9):
             nrm = None
-        c_cam, C_w = c_cam[ok], C_w[ok]
-        rays = [None] * len(c_cam) if rotation is None or nrm is None else c_cam @ np.asarray(rotation, np.float64).T
-        return c_cam, C_w, [anchor_information(nrm, s_in ** -2, s_n ** -2, r) for r in rays]
+        return c_cam[ok], C_w[ok], anchor_information(nrm, s_in ** -2, s_n ** -2)

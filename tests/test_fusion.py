@@ -596,25 +596,6 @@ def test_pose_refiner_anchors_fix_what_the_surface_leaves_free():
         PoseRefiner(V, F, anchor_sigma=(0.0, 1e-4))
 
 
-def test_anchor_information_weighs_the_line_of_sight_within_the_plane_by_sin_squared():
-    """Across the plane w_n, within it w_in, except along the in-plane direction of the line of
-    sight, which weighs w_in sin(e)^2; a view straight down changes nothing."""
-    from appfusion.fusion import anchor_information
-
-    n = np.array([0, 0, 1.0])
-    M0 = anchor_information(n, 3.0, 30.0)
-    assert np.allclose(M0, np.diag([3.0, 3.0, 30.0]))
-    assert np.allclose(anchor_information(None, 3.0, 30.0, [1, 0, 0]), 3 * np.eye(3))
-    assert np.allclose(anchor_information(n, 3.0, 30.0, [0, 0, -2.0]), M0)
-    e = np.radians(20)
-    view = [np.cos(e) * np.cos(0.4), np.cos(e) * np.sin(0.4), -np.sin(e)]   # looking down at 20 deg
-    M = anchor_information(2 * n, 3.0, 30.0, 5 * np.array(view))
-    v = np.array([np.cos(0.4), np.sin(0.4), 0])
-    t = np.cross(n, v)
-    assert np.allclose(M, M.T)
-    assert np.allclose(M @ v, 3 * np.sin(e) ** 2 * v) and np.allclose(M @ t, 3 * t) and np.allclose(M @ n, 30 * n)
-
-
 def test_open_boundary_points_are_those_near_the_cut_rim():
     """The points within a radius of the mesh's open boundary (a sphere cut open at the bottom, as
     the object box cuts a scan off the plane); none on a closed mesh, none with radius 0."""
