@@ -45,10 +45,11 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: over 128 neighbours; 11: circle centres fitted to the blobs' pixels; 12: the colour pass's rho_s from a
 #: cluster's interior points and the model ladder's significance rule; 13: the geometry fused again at
 #: poses re-registered with the circles; 14: normals filtered in adaptive stages; 15: the environment map
-#: splatted with a 0.25 px pixel kernel; 16: circle centres and anchors weighted by their view's
-#: elevation, the centres fused again at the refused poses; 17: a third adaptive stage of the normal
-#: filter, 12 passes)
-CHECKPOINT_VERSION = 17
+#: splatted with a 0.25 px pixel kernel; 16: circle centres weighted by their view's elevation and
+#: fused again at the refused poses; 17: a third adaptive stage of the normal filter, 12 passes;
+#: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
+#: automatic k with split_gain 3)
+CHECKPOINT_VERSION = 18
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -102,8 +103,8 @@ class ScanConfig:
         seed 1 / seed 3 / demo 0.049 / 0.061 / 0.044 -> 0.043 / 0.052 / 0.038, normals 0.087 /
         0.094 / 0.093 -> 0.082 / 0.082 / 0.083 deg, ~16 s more on the demo (session 13). 1 by
         default: with two rounds the demo's IR clustering took k = 2 (excess ratio 2.31 against
-        ``split_gain`` 2.0) with a spurious alpha = 0.86 cluster, and its labels came out at 0.905
-        and the scan at 257 s (docs/geometry-pass.md).
+        ``split_gain`` 2.0, 3.0 since) with a spurious alpha = 0.86 cluster, and its labels came out
+        at 0.905 and the scan at 257 s (docs/geometry-pass.md); not measured again since.
     ir_rim_m : float
         Points within this distance of the fused surface's open boundary (where the object box cut it
         off the support plane) stay out of the IR pass's Ward fits (``rim`` of
@@ -1650,6 +1651,8 @@ class _Geometry:
         # only frames tracked once the four circles had fixed the marker frame: the frames before it
         # (e.g. the first two of the synthetic demo's geometry pass, three circles in view) came out
         # 5-10 cm off after the final marker transform, and their IR samples only added wrong data
-        since = np.array([st.pose_marker is not None for st in res.states], bool)
+        # and only frames tracked: a lost frame's state keeps the last good pose (the previous frame's,
+        # 9 cm away on the --quick bench's coarse orbit), which is no pose of this frame
+        since = np.array([st.pose_marker is not None and st.ok for st in res.states], bool)
         poses = {int(i): p for i, p, ok in zip(res.frame_indices, res.poses, since) if ok and np.all(np.isfinite(p))}
         return V, F, res.points.astype(np.float32), res.normals.astype(np.float32), poses
