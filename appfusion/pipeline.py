@@ -102,8 +102,8 @@ class ScanConfig:
         so a second round is anchored to better centres and registers to a better mesh: relit on
         seed 1 / seed 3 / demo 0.049 / 0.061 / 0.044 -> 0.043 / 0.052 / 0.038, normals 0.087 /
         0.094 / 0.093 -> 0.082 / 0.082 / 0.083 deg, ~16 s more on the demo (session 13, with the
-        anchors weighted by elevation, an idea since dropped). 1 by
-        default: with two rounds the demo's IR clustering took k = 2 (excess ratio 2.31 against
+        anchors weighted by elevation, an idea since dropped). 1 by default: with two rounds the
+        demo's IR clustering took k = 2 (excess ratio 2.31 against
         ``split_gain`` 2.0, 3.0 since) with a spurious alpha = 0.86 cluster, and its labels came out
         at 0.905 and the scan at 257 s (docs/geometry-pass.md); not measured again since.
     ir_rim_m : float
