@@ -185,3 +185,29 @@ def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_mo
     a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
     assert again is True and a[2] == np.float32(0.230)
     assert len(notes) == 1 and "cluster 2 0.200 -> 0.230" in notes[0]
+
+
+def test_geometry_poses_passed_on_are_only_those_of_tracked_frames():
+    """A lost frame's state keeps the last good pose (the previous frame's): finish() must not hand
+    it on as the frame's own, nor the poses of frames before the marker frame existed."""
+    from types import SimpleNamespace
+
+    import open3d as o3d
+
+    from appfusion.frame import make_pose
+    from appfusion.geometry_pass import FrameState
+    from appfusion.pipeline import _Geometry
+
+    g = _Geometry({}, ScanConfig(**SMALL))
+    pose = [make_pose(np.eye(3), [0.1 * i, 0, 0.5]) for i in range(4)]
+    states = [FrameState(10, 0.0, "first", pose[0], None),                 # before the marker frame
+              FrameState(11, 0.1, "ok", pose[1], pose[1]),
+              FrameState(12, 0.2, "lost", pose[1], pose[1]),               # stale: frame 11's pose
+              FrameState(13, 0.3, "ok", pose[3], pose[3])]
+    mesh = o3d.geometry.TriangleMesh.create_box()
+    fake = SimpleNamespace(mesh=mesh, points=np.zeros((2, 3)), normals=np.tile([0, 0, 1.0], (2, 1)), states=states,
+                           frame_indices=np.array([s.index for s in states]), poses=np.array(pose))
+    g.gp.result = lambda n_points=None: fake
+    *_, poses = g.finish(2)
+    assert sorted(poses) == [11, 13]
+    assert np.array_equal(poses[13], pose[3])
