@@ -476,9 +476,8 @@ class GeometryPass:
             # frame the mesh and every pose are put in (MarkerTracker.refit)
             if self.tracker.refit((by_index[f].detection, by_index[f].pose) for f in refused):
                 W2M = invert_pose(self.tracker.marker_to_world())
-                for st in by_index.values():
-                    if st.index in refused:
-                        st.pose_marker = W2M @ st.pose
+                for f in refused:
+                    by_index[f].pose_marker = W2M @ by_index[f].pose
         return n
 
     def result(self, n_points: int | None = None, require_markers: bool = True) -> GeometryResult:

@@ -767,7 +767,7 @@ class MarkerTracker:
             return assign
         W = transform_points(pose, det.centers)
         nw = None if det.normal is None else pose[:3, :3] @ det.normal
-        w = view_weight(det.centers, det.normal) if self.view_weighting else np.ones(det.n)
+        w = self._weights(det)
         if not self.initialised:
             if not det.complete:
                 return assign
@@ -789,6 +789,10 @@ class MarkerTracker:
         self.n_complete += int(det.complete and (assign >= 0).all())
         self.n_updates += 1
         return assign
+
+    def _weights(self, det: MarkerDetection) -> np.ndarray:
+        """(K,) weight of each detected centre in the running mean (:func:`view_weight`, or 1)."""
+        return view_weight(det.centers, det.normal) if self.view_weighting else np.ones(det.n)
 
     def _assign(self, W: np.ndarray, C: np.ndarray) -> np.ndarray:
         """Circle number (0-based) of each world-frame centre ``W``: the nearest of ``C`` within the
@@ -832,7 +836,7 @@ class MarkerTracker:
             if det is None or pose is None or det.n == 0 or not np.all(np.isfinite(pose)):
                 continue
             W = transform_points(pose, det.centers)
-            w = view_weight(det.centers, det.normal) if self.view_weighting else np.ones(det.n)
+            w = self._weights(det)
             assign = self._assign(W, C)
             hit = assign >= 0
             np.add.at(sums, assign[hit], w[hit, None] * W[hit])
