@@ -791,7 +791,11 @@ def test_xcb_device_error_keeps_scan(tmp_path):
     win.pass_combo.setCurrentText("scan")
     win.start()
     wait_until(lambda: win.worker.finished.is_set(), what="the device to fail")
-    wait_until(lambda: "Source lost" in win.banner.text(), what="the error banner")
+    # the banner says "Source lost" already while the engine still processes the frames it has (the
+    # stop action rightly enabled then); the final one, once the window has seen the worker finish,
+    # offers the export
+    wait_until(lambda: "Source lost" in win.banner.text() and "Export it" in win.banner.text(),
+               what="the error banner of the finished scan")
     assert win.worker.state == "source-error" and "disconnected" in win.banner.text()
     assert win.a_export.isEnabled() and not win.a_stop.isEnabled()
     assert win.points.positions is not None  # the scan so far is still shown
