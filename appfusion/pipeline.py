@@ -49,7 +49,7 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: fused again at the refused poses; 17: a third adaptive stage of the normal filter, 12 passes;
 #: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
 #: automatic k with split_gain 3)
-CHECKPOINT_VERSION = 18
+CHECKPOINT_VERSION = 19
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -84,6 +84,11 @@ class ScanConfig:
         Light the object with the support plane as seen from each point (black paper, the white
         circles, the object's shadow on them: :mod:`appfusion.near_field`) instead of as the mirror
         ball saw it, in D and S of Eq. 5 (beyond the paper's distant-light model, §3).
+    map_blur_correction : bool
+        Read S against the captured map at each lobe's effective roughness
+        (:func:`appfusion.envmap.effective_alpha`, with the map's own blur ``blur_var_rad2``): a sharp
+        lobe would otherwise see the lights widened by the ball image's pixels, and rho_s come out
+        high (beyond the paper).
     diffuse_tau : float or None
         rho_d by the least squares of Eq. 5 with each sample weighted by ``1 / (1 + (S / (tau D))^2)``
         (diffuse-dominated views count most, as Eq. 6's minimum intends); None: unweighted.
@@ -152,6 +157,7 @@ class ScanConfig:
     rgb_split: bool = True
     rgb_resweep: bool = True
     near_field: bool = True
+    map_blur_correction: bool = True
     diffuse_tau: float | None = 0.25
     refine_poses: bool = True
     refuse_geometry: bool = True
@@ -1189,8 +1195,10 @@ class ScanRunner:
         return WhiteBalancer(centers=centers, radius=mc.radius_m)
 
     def _rgb_kwargs(self) -> dict[str, Any]:
+        blur = float((self.env.meta or {}).get("blur_var_rad2", 0.0) or 0.0) if self.env is not None else 0.0
         return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf,
-                "estimator": self.config.rho_d_estimator, "diffuse_tau": self.config.diffuse_tau}
+                "estimator": self.config.rho_d_estimator, "diffuse_tau": self.config.diffuse_tau,
+                "map_blur_var": blur if self.config.map_blur_correction else 0.0}
 
     def _near_field(self):
         """The support plane as near-field light for the RGB pass (:mod:`appfusion.near_field`), or None

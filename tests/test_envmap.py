@@ -520,3 +520,61 @@ def test_envmap_comparison_calibrates_and_masks(tmp_path):
     assert np.isnan(envmap_error(ref, t2)) and np.isnan(envmap_energy_rel_err(ref, t2))
     with pytest.raises(AppFusionError, match="shape"):
         envmap_error(np.zeros((64, 64, 3)), t)
+
+
+# -- the map's own blur (beyond the paper) -------------------------------------------------------
+
+def test_map_blur_variance_and_effective_alpha_undo_the_ball_images_blur(orbit_pass, gt128):
+    """The captured map is the scene seen through the pixels of the ball's images (and the splat and
+    the texels): a sharp Ward lobe read against it sees the lights widened, so a least-squares fit of
+    the true S on the captured one comes out high (the rho_s of Eq. 8 with it). The map's own blur
+    variance (meta ``blur_var_rad2``, from the ball's geometry) read through ``effective_alpha``
+    takes most of that bias away. S by brute-force quadrature over the texels; mirror directions
+    around the brightest rectangle and its edges."""
+    from appfusion.brdf import ward
+    from appfusion.envmap import effective_alpha, map_blur_var
+
+    _, em = orbit_pass
+    v = em.meta["blur_var_rad2"]
+    # 40 views at 0.65 m, f = 525 px, R = 5 cm: one pixel turns the reflection by ~2.3 degrees at
+    # the ball's centre; the variance must be of that order (box pixel + splat + texel)
+    step = 2 * (0.65 - RADIUS) / (525.0 * RADIUS)
+    assert 0.05 * step ** 2 < v < 0.5 * step ** 2, (v, step ** 2)
+    D = octa.sphere_directions(128).reshape(-1, 3)
+    Om = octa.sphere_solid_angles(128).reshape(-1)
+    rng = np.random.default_rng(0)
+    k = 300
+    th, ph = np.radians(rng.uniform(14, 46, k)), np.radians(rng.uniform(4, 56, k))
+    r = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], 1)
+    tilt, az = np.radians(rng.uniform(10, 50, k)), rng.uniform(0, 2 * np.pi, k)
+    t = np.cross(r, [0.0, 0.0, 1.0])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(r, t)
+    n = np.cos(tilt / 2)[:, None] * r + np.sin(tilt / 2)[:, None] * (np.cos(az)[:, None] * t + np.sin(az)[:, None] * b)
+    wo = 2 * (r * n).sum(1, keepdims=True) * n - r                  # the view whose mirror direction is r
+    ok = (n[:, 2] > 0) & ((n * wo).sum(1) > 0.3)
+    n, wo = n[ok], wo[ok]
+
+    def S(L, alpha):
+        out = np.empty((len(n), 3))
+        for i in range(len(n)):
+            f = ward(alpha, D, np.broadcast_to(wo[i], D.shape), np.broadcast_to(n[i], D.shape))
+            out[i] = (L.reshape(-1, 3) * (f * np.maximum(D @ n[i], 0) * Om)[:, None]).sum(0)
+        return out
+
+    a = 0.05
+    St = S(gt128, a)
+    slope = {}
+    for name, al in (("alpha", a), ("effective", effective_alpha(a, v))):
+        Sc = S(em.radiance, al)
+        slope[name] = float(np.mean((Sc * St).sum(0) / (Sc ** 2).sum(0)))
+    assert slope["alpha"] > 1.004, slope
+    assert abs(slope["effective"] - 1) < 0.5 * (slope["alpha"] - 1), slope
+    # the rule itself: variances add, floored at half the roughness; none without blur
+    assert effective_alpha(0.06, 0.0) == 0.06
+    assert np.isclose(effective_alpha(0.06, 2e-4) ** 2, 0.06 ** 2 - 1e-4)
+    assert effective_alpha(0.01, 1.0) == 0.005
+    assert np.allclose(effective_alpha(np.array([0.06, 0.35]), 2e-4) ** 2, np.array([0.06, 0.35]) ** 2 - 1e-4)
+    # a map without measured texels has no blur to speak of
+    z = np.zeros((2, 8, 8))
+    assert map_blur_var(np.zeros((2, 8, 8, 3)), z > 0, z, z) == 0.0

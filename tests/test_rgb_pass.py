@@ -466,3 +466,27 @@ def test_weak_model_evidence_is_decided_by_colour():
     rd3[tie & ~blue] = [0.2, 0.6, 0.2]                       # green: like no confident neighbour
     other = _choose_by_evidence(rss, var, cands, movable, P, rd3, 3.0, 0.02)
     assert (other[tie & ~blue] == 0).all() and (other[tie & blue] == 0).all()
+
+
+def test_map_blur_var_reads_S_at_the_effective_roughness(sphere_run):
+    """With the map's blur variance given, the tables are built and read at each lobe's effective
+    roughness (appfusion.envmap.effective_alpha): S equals the plain pass's S at that roughness; a
+    variance that is not a finite number >= 0 is refused before anything is built."""
+    from appfusion.envmap import effective_alpha
+
+    sc, poses, frames, rp0, _ = sphere_run
+    v = 4e-4
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, map_blur_var=v)
+    eff = effective_alpha(np.asarray(sc.alphas, float), v)
+    assert all(any(np.isclose(a, t) for t in rp.tables.alphas) for a in eff)
+    p = np.arange(0, len(sc.positions), 7)
+    C = poses[0][:3, 3]
+    wo = C - rp.positions[p]
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    S = rp._lobe_S(p, rp.normals[p], wo, rp.point_alpha[p], seed=0)
+    S_eff = rp0.tables.S(rp.normals[p], wo, eff[rp.labels[p]])
+    np.testing.assert_allclose(S, S_eff, rtol=1e-6)
+    assert not np.allclose(S, rp0.tables.S(rp.normals[p], wo, rp.point_alpha[p]), rtol=1e-3)
+    for bad in (-1e-4, np.nan, np.inf):
+        with pytest.raises(AppFusionError, match="map_blur_var"):
+            RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, map_blur_var=bad)
