@@ -332,3 +332,60 @@ def test_sample_ward_density_matches_ward_pdf_and_integrates_to_one():
     wi, c, pdf = sample_ward(0.5, np.broadcast_to(np.array([0, 0, 1.0]), (len(u1), 3)), u1, u2)
     est = np.mean(np.where(c > 0, np.maximum(wi[:, 2], 0) / pdf, 0.0))
     assert abs(est / np.pi - 1) < 0.15
+
+
+def test_relit_error_and_its_interior_figure(tmp_path):
+    """appfusion.evaluate.relit_error on a miniature truth folder whose reference is our own render:
+    0 both ways; one silhouette pixel made 50x brighter in the reference (a glint on the rim) moves
+    the plain figure a lot and the interior one (pixels over 1 px from either silhouette) not at all;
+    an interior pixel moves both."""
+    import json
+    import os
+
+    import open3d as o3d
+
+    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+    import cv2
+
+    from appfusion.evaluate import relit_error, truth_envmap
+
+    m = o3d.geometry.TriangleMesh.create_sphere(0.05, resolution=30)
+    m.compute_vertex_normals()
+    V, F = np.asarray(m.vertices), np.asarray(m.triangles)
+    r = ScanResult(V, np.asarray(m.vertex_normals), np.full((len(V), 3), 0.5), np.zeros(len(V), np.int32),
+                   [[0.1, 0.1, 0.1]], [0.2], mesh_vertices=V, mesh_faces=F)
+    K = Intrinsics(48, 40, 60, 60, 23.5, 19.5)
+    pose = make_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.3])
+    tdir = tmp_path / "truth"
+    (tdir / "envmaps").mkdir(parents=True)
+    (tdir / "references").mkdir()
+    sky = np.full((32, 64, 3), 0.5, np.float32)
+    sky[:8] = 2.0
+    cv2.imwrite(str(tdir / "envmaps" / "sunset.exr"), sky)
+    env = truth_envmap(tdir, "sunset", 256)
+    from appfusion.points import NormalField
+
+    img, mask = render_view(r, env, K, pose, spp=64, normal_field=NormalField(r.positions, r.normals))
+    views = {"intrinsics": K.to_json(), "environment": "sunset",
+             "views": [{"name": "v", "pose": pose.tolist(), "exr": "v.exr", "mask": "v-mask.png"}]}
+    (tdir / "references" / "views.json").write_text(json.dumps(views))
+    cv2.imwrite(str(tdir / "references" / "v-mask.png"), mask.astype(np.uint8) * 255)
+
+    def errors(ref):
+        cv2.imwrite(str(tdir / "references" / "v.exr"), np.ascontiguousarray(ref[..., ::-1].astype(np.float32)))
+        e, pairs, e_in = relit_error(r, tdir, spp=64, interior=True)
+        assert len(pairs) == 1 and relit_error(r, tdir, spp=64)[0] == pytest.approx(e)
+        return e, e_in
+
+    e0, e0_in = errors(img)
+    assert e0 < 1e-6 and e0_in < 1e-6
+    edge = mask & ~(cv2.erode(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+    y, x = np.argwhere(edge)[0]
+    ref = img.copy()
+    ref[y, x] *= 50
+    e1, e1_in = errors(ref)
+    assert e1 > 0.3 and e1_in < 1e-6
+    ref = img.copy()
+    ref[20, 24] *= 2                                              # the sphere's centre
+    e2, e2_in = errors(ref)
+    assert e2 > 0.01 and e2_in > e2

@@ -89,6 +89,7 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "scan_envmap_energy_rel_err": ("fraction", 0.03, "lower"),      # issue #5: total energy within 3 %
     "scan_alpha_sharpest_rel_err": ("fraction", 0.05, "lower"),     # the material with a visible IR highlight
     "scan_ir_pattern_heldout_cv": ("fraction", None, "lower"),     # IR emitter pattern map, held-out spread
+    "scan_relit_interior_rel_rmse": ("fraction", None, "lower"),   # relit without the 1-px silhouette band (diagnostic)
     # "skip what the scene doesn't need": fraction of the run time saved by each skip (no goal; the
     # before / after figures and the error check are in extra and docs/performance.md)
     "skip_fusion_saving": ("fraction", None, "higher"),

@@ -17,7 +17,9 @@ the synthetic scanner (``replay.synth``), and reports:
 ``scan_*``
     The end-to-end figures a user gets (``scan_ate_mm``, ``scan_chamfer_mm``, ``scan_normal_err_deg``,
     ``scan_label_accuracy``, ``scan_alpha_cluster_rel_err``, ``scan_rho_d_median_rel_err``,
-    ``scan_rho_s_rel_err``, ``scan_envmap_median_rel_err``). The per-stage metrics of the same names
+    ``scan_rho_s_rel_err``, ``scan_envmap_median_rel_err``; ``scan_relit_interior_rel_rmse``, the
+    relit error without the pixels on either render's silhouette, a diagnostic with no goal of its
+    own: :mod:`appfusion.evaluate`). The per-stage metrics of the same names
     without ``scan_`` stay measured by the stages' own generators; these are the same quantities after
     the whole chain.
 ``scan_ir_pattern_heldout_cv``
@@ -81,6 +83,7 @@ SCAN_METRICS = {
     "envmap_median_rel_err": "scan_envmap_median_rel_err",
     "envmap_energy_rel_err": "scan_envmap_energy_rel_err",
     "alpha_sharpest_rel_err": "scan_alpha_sharpest_rel_err",
+    "relit_interior_rel_rmse": "scan_relit_interior_rel_rmse",
 }
 #: ScanRunner methods timed per scan (stage name in the report)
 _TIMED = {"_stage_ir_calibration": "ir-calibration", "_stage_environment": "environment",
