@@ -49,7 +49,7 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: fused again at the refused poses; 17: a third adaptive stage of the normal filter, 12 passes;
 #: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
 #: automatic k with split_gain 3)
-CHECKPOINT_VERSION = 19
+CHECKPOINT_VERSION = 20
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 

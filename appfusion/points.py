@@ -648,7 +648,8 @@ def _neighbourhoods(P: np.ndarray, radius: float, k: int, seed: int) -> tuple[np
 def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s: float | None = None,
                              sigma_n: float = 0.35, iterations: int = 2, k: int = 32, seed: int = 0,
                              local_linear: bool = True, adaptive_stages: tuple[int, ...] = (),
-                             adaptive_c: float = 2.5) -> np.ndarray:
+                             adaptive_c: float = 2.5, adaptive_converge: float | None = 0.7,
+                             stats: dict | None = None) -> np.ndarray:
     """Bilateral filter of point normals (paper §4.1, after Fleishman et al. 2003).
 
     Each normal becomes the normalised average of its neighbours' normals weighted by a spatial
@@ -699,6 +700,20 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         0.559 -> 0.563 (12 passes everywhere: 0.134, 0.118, 2.22).
     adaptive_c : float
         The stage test's multiple of the median move.
+    adaptive_converge : float or None
+        The stages run only while the filter converges (session 14): a stage's median move per pass
+        must be at most this fraction of the pass before it (the last of ``iterations``, then the
+        previous stage's per-pass rate), else it and the later ones are skipped for every point.
+        Noise is averaged out geometrically, so the moves of a converging filter shrink pass by
+        pass; where the normal's variation is not linear over the kernel *everywhere* (a pepper's
+        lobes, no smooth part to compare with) every pass moves every normal by about the same bias,
+        the median move with it, and the per-point test above lets it accumulate. Capsule (seed 3):
+        median moves 0.80, 0.16, 0.08, 0.05 deg in passes 1-4, error 1.05 -> 0.12 deg after 15;
+        pepper: 0.89, 0.28, 0.24, 0.23 deg, error 1.09 -> 0.55 after one pass and 4.6 after 24.
+        None: no such test.
+    stats : dict, optional
+        Filled with ``"stage_rates"`` (median move per pass of each stage run, radians),
+        ``"base_rate"`` and ``"stages_run"``.
 
     Returns
     -------
@@ -729,8 +744,11 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
     # per component: strided (N, k, 3) slices were most of their time)
     X = [(P[j, c] - P[:, None, c]) / sigma_s for c in range(3)] if local_linear else None
 
+    last_move = [0.0]
+
     def passes(Ncur: np.ndarray, count: int) -> np.ndarray:
         for _ in range(count):
+            prev = Ncur
             Nj = [Ncur[:, c][j] for c in range(3)]              # neighbours' normals, (N, k) per axis
             dn2 = (Nj[0] - Ncur[:, None, 0]) ** 2
             dn2 += (Nj[1] - Ncur[:, None, 1]) ** 2
@@ -740,9 +758,15 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
             if local_linear:
                 acc = _local_linear_value(X, w, Nj, Ncur, acc)
             Ncur = acc / np.linalg.norm(acc, axis=1, keepdims=True)
+            last_move[0] = float(np.median(np.arccos(np.clip(np.einsum("nc,nc->n", Ncur, prev), -1.0, 1.0))))
         return Ncur
 
+    if adaptive_converge is not None and not (np.isfinite(adaptive_converge) and adaptive_converge > 0):
+        raise AppFusionError(f"bilateral_filter_normals: adaptive_converge must be positive or None, got {adaptive_converge}")
     Ncur = passes(N0, int(iterations))
+    rate = last_move[0] if int(iterations) > 0 else np.inf
+    if stats is not None:
+        stats.update(base_rate=rate, stage_rates=[], stages_run=0)
     if not stages:
         return Ncur
     out, alive = Ncur.copy(), np.ones(len(P), bool)
@@ -750,11 +774,19 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         Nnext = passes(Ncur, count)
         move = np.einsum("nc,nc->n", Nnext, Ncur)               # cos of each point's move
         ang = np.arccos(np.clip(move, -1.0, 1.0))
+        stage_rate = float(np.median(ang)) / count
+        if stats is not None:
+            stats["stage_rates"].append(stage_rate)
+        if adaptive_converge is not None and stage_rate > adaptive_converge * rate:
+            break                                               # drifting, not converging: no point takes it
+        rate = stage_rate
         alive &= ang <= adaptive_c * np.median(ang)
         if not alive.any():                                     # no point takes later stages
             break
         out[alive] = Nnext[alive]
         Ncur = Nnext
+        if stats is not None:
+            stats["stages_run"] += 1
     return out
 
 

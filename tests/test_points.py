@@ -248,7 +248,9 @@ def test_adaptive_stages_smooth_where_the_surface_allows_and_stop_at_a_curvature
     kw = dict(sigma_s=0.004, sigma_n=0.25, k=32)
     plain = bilateral_filter_normals(P, noisy, iterations=3, **kw)
     many = bilateral_filter_normals(P, noisy, iterations=12, **kw)
-    adaptive = bilateral_filter_normals(P, noisy, iterations=3, adaptive_stages=(3, 6), **kw)
+    st = {}
+    adaptive = bilateral_filter_normals(P, noisy, iterations=3, adaptive_stages=(3, 6), stats=st, **kw)
+    assert st["stages_run"] == 2                               # the convergence test lets them run
     assert np.allclose(np.linalg.norm(adaptive, axis=1), 1)
     # measured: smooth parts 0.43 / 0.25 / 0.23 degrees, seam 1.8 / 4.7 / 1.8
     assert err(many, smooth) < 0.7 * err(plain, smooth) and err(many, seam) > 2 * err(plain, seam)
@@ -260,6 +262,55 @@ def test_adaptive_stages_smooth_where_the_surface_allows_and_stop_at_a_curvature
         bilateral_filter_normals(P, noisy, adaptive_stages=(0,))
     with pytest.raises(AppFusionError):
         bilateral_filter_normals(P, noisy, adaptive_stages=(3,), adaptive_c=0.0)
+
+
+def test_adaptive_stages_stop_where_every_normal_drifts():
+    """A bumpy sphere (a pepper's lobes): the normal varies non-linearly over the kernel everywhere,
+    so each further pass moves every normal by about the same bias and the median-relative stage
+    test lets it accumulate. The convergence test (``adaptive_converge``) sees the median move per
+    pass stop shrinking and runs no stage there, while on the capsule of the test above the stages
+    still run (their moves shrink to under half of the pass before)."""
+    from appfusion.points import bilateral_filter_normals
+
+    rng = np.random.default_rng(12)
+    n = 30000
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    th, ph = np.arccos(u[:, 2]), np.arctan2(u[:, 1], u[:, 0])
+    R0, a, m = 0.05, 0.06, 5                                  # 5 cm, +-6 % lobes, 5 around and 5 up
+    r = R0 * (1 + a * np.cos(m * ph) * np.sin(th) ** 2 * np.cos(3 * th))
+    P = r[:, None] * u
+    # the true normal: gradient of |x| - r(theta, phi) by central differences on the sphere's chart
+    h = 1e-6
+
+    def radius(t, p):
+        return R0 * (1 + a * np.cos(m * p) * np.sin(t) ** 2 * np.cos(3 * t))
+
+    dr_t = (radius(th + h, ph) - radius(th - h, ph)) / (2 * h)
+    dr_p = (radius(th, ph + h) - radius(th, ph - h)) / (2 * h)
+    e_t = np.stack([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)], 1)
+    e_p = np.stack([-np.sin(ph), np.cos(ph), 0 * ph], 1)
+    truth = u - (dr_t / r)[:, None] * e_t - (dr_p / (r * np.maximum(np.sin(th), 1e-9)))[:, None] * e_p
+    truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+    noisy = truth + rng.normal(0, 0.03, truth.shape)
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    ok = np.sin(th) > 0.3                                     # away from the chart's poles
+
+    def err(N):
+        return np.median(np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", N, truth), -1, 1)))[ok])
+
+    kw = dict(sigma_s=0.004, sigma_n=0.25, k=32, iterations=3, adaptive_stages=(3, 6, 12))
+    plain = bilateral_filter_normals(P, noisy, sigma_s=0.004, sigma_n=0.25, k=32, iterations=3)
+    st_off, st_on = {}, {}
+    drift = bilateral_filter_normals(P, noisy, adaptive_converge=None, stats=st_off, **kw)
+    held = bilateral_filter_normals(P, noisy, adaptive_converge=0.7, stats=st_on, **kw)
+    print(f"errors: three passes {err(plain):.2f}, stages {err(drift):.2f}, with the test {err(held):.2f} deg; "
+          f"rates {np.degrees(st_off['base_rate']):.3f}, {np.degrees(st_off['stage_rates'])}")
+    assert err(drift) > 1.5 * err(plain)                     # the stages drift here
+    assert st_on["stages_run"] == 0 and np.array_equal(held, plain)
+    assert st_off["stages_run"] == 3
+    with pytest.raises(AppFusionError, match="adaptive_converge"):
+        bilateral_filter_normals(P, noisy, adaptive_stages=(3,), adaptive_converge=0.0)
 
 
 def test_interior_mask_leaves_out_the_points_near_another_label():
