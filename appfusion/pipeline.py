@@ -48,7 +48,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: splatted with a 0.25 px pixel kernel; 16: circle centres weighted by their view's elevation and
 #: fused again at the refused poses; 17: a third adaptive stage of the normal filter, 12 passes;
 #: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
-#: automatic k with split_gain 3)
+#: automatic k with split_gain 3; 19: the captured map's blur variance and S read at the effective
+#: roughness; 20: the normal filter's stages run only while it converges)
 CHECKPOINT_VERSION = 20
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
