@@ -89,6 +89,9 @@ class GeometryConfig:
         varies non-linearly over the kernel everywhere the stages drifted: the pepper's normals
         0.93 deg after the three passes, 4.6 deg after the stages; the vase's 1.11 -> 0.35 deg with the
         test, the capsules' unchanged (their stages' rates fall to 0.4-0.5 of the previous).
+    refuse_voxel_scale : float
+        Voxel of :meth:`GeometryPass.refuse`'s fresh TSDF as a fraction of tracking's (the scan
+        passes ``ScanConfig.refuse_voxel_scale``, 1 by default); the normal filter's width follows it.
     min_component : float
         Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
         are dropped (flying fragments).
@@ -115,6 +118,7 @@ class GeometryConfig:
     bilateral_adaptive_stages: tuple[int, ...] = (3, 6, 12)
     bilateral_adaptive_c: float = 2.5
     bilateral_adaptive_converge: float | None = 0.7
+    refuse_voxel_scale: float = 1.0
     min_component: float = 0.02
     hole_radius: float = 0.01
     seed: int = 0
@@ -418,7 +422,8 @@ class GeometryPass:
         fused from all frames (:class:`PoseRefiner`) with its circle centres as anchors (the in-plane
         and across-plane sigmas ``anchor_sigma``, metres; the depth pixels weighted ``depth_weight``,
         since their errors are correlated), then a fresh TSDF (same voxel size, region and surface
-        volume) integrates every frame at its new pose, and :meth:`result` extracts that one.
+        volume; the voxel scaled by ``config.refuse_voxel_scale``) integrates every frame at its new
+        pose, and :meth:`result` extracts that one.
         Demo: poses 0.28 -> 0.12 mm (ICP to the mesh alone: 0.15, worse than tracking at steep
         views where the object constrains the pose least); see docs/geometry-pass.md. Afterwards the
         circle centres are fused again from the same detections at the new poses
@@ -450,7 +455,12 @@ class GeometryPass:
         refiner = PoseRefiner(np.asarray(old.vertices), np.asarray(old.triangles), iterations=4,
                               depth_weight=depth_weight, anchor_sigma=anchor_sigma)
         by_index = {s.index: s for s in self.states if s.pose_marker is not None and s.ok}
-        new = TSDFFusion(self.fusion.intrinsics, self.fusion.config)
+        fc = self.fusion.config
+        if self.config.refuse_voxel_scale != 1.0:
+            # scaled from tracking's voxel, also in a second round (whose volume is already scaled)
+            base = self.__dict__.setdefault("_tracking_voxel", fc.voxel_size)
+            fc = replace(fc, voxel_size=base * float(self.config.refuse_voxel_scale))
+        new = TSDFFusion(self.fusion.intrinsics, fc)
         if self.fusion.roi is not None:
             new.set_roi(*self.fusion.roi)
         n, refused = 0, set()

@@ -49,8 +49,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: fused again at the refused poses; 17: a third adaptive stage of the normal filter, 12 passes;
 #: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
 #: automatic k with split_gain 3; 19: the captured map's blur variance and S read at the effective
-#: roughness; 20: the normal filter's stages run only while it converges)
-CHECKPOINT_VERSION = 20
+#: roughness; 20: the normal filter's stages run only while it converges; 21: refuse_voxel_scale in
+#: the configuration)
+CHECKPOINT_VERSION = 21
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -112,6 +113,13 @@ class ScanConfig:
         demo's IR clustering took k = 2 (excess ratio 2.31 against
         ``split_gain`` 2.0, 3.0 since) with a spurious alpha = 0.86 cluster, and its labels came out
         at 0.905 and the scan at 257 s (docs/geometry-pass.md); not measured again since.
+    refuse_voxel_scale : float
+        Voxel of the re-fusion at the re-registered poses, as a fraction of tracking's (session 14;
+        in [0.25, 1]). 1 (default) keeps tracking's voxel. 2/3 (2 mm where tracking fuses at 3 mm;
+        tracking itself at 2 mm lost frames) keeps more of a sharp rim's shape, where the sun's glints
+        sit: relit on the pepper 0.370 -> 0.204, vase 0.244 -> 0.230, demo 0.0387 -> 0.0315; but
+        seed 3 0.057 -> 0.080 and the sphere 0.018 -> 0.021, and the normals' median rose on the
+        capsules and the sphere (demo 0.085 -> 0.109 deg), so it is not the default.
     ir_rim_m : float
         Points within this distance of the fused surface's open boundary (where the object box cut it
         off the support plane) stay out of the IR pass's Ward fits (``rim`` of
@@ -163,6 +171,7 @@ class ScanConfig:
     refine_poses: bool = True
     refuse_geometry: bool = True
     refuse_rounds: int = 1
+    refuse_voxel_scale: float = 1.0
     ir_rim_m: float = 0.004
     ir_interior_m: float = 0.005
     ir_pattern: bool = True
@@ -349,6 +358,9 @@ class ScanRunner:
         self.source = source
         self.out_dir = Path(out_dir)
         self.config = config or ScanConfig()
+        if not 0.25 <= float(self.config.refuse_voxel_scale) <= 1.0:
+            raise AppFusionError(f"scan config: refuse_voxel_scale must be in [0.25, 1] (the re-fusion's voxel "
+                                 f"as a fraction of tracking's), got {self.config.refuse_voxel_scale}")
         if self.config.refuse_geometry and not int(self.config.refuse_rounds) >= 1:
             raise AppFusionError(f"scan config: refuse_rounds must be at least 1 (refuse_geometry=False turns the "
                                  f"re-registration off), got {self.config.refuse_rounds}")
@@ -1634,7 +1646,8 @@ class _Geometry:
         from .fusion import FusionConfig
         from .geometry_pass import GeometryConfig, GeometryPass
 
-        gcfg = GeometryConfig(n_points=config.n_points, box_height=config.box_height_m)
+        gcfg = GeometryConfig(n_points=config.n_points, box_height=config.box_height_m,
+                              refuse_voxel_scale=float(config.refuse_voxel_scale))
         fc = {} if surface else {"surface_max_incidence_deg": None}
         if config.voxel_m:
             fc["voxel_size"] = config.voxel_m

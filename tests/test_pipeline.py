@@ -50,8 +50,13 @@ def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect
     with pytest.raises(AppFusionError, match="refuse_rounds must be at least 1"):
         _run(kinect_sphere, tmp_path / "zero", refuse_rounds=0)
     assert not (tmp_path / "zero" / "state").exists()
-    r, _ = _run(kinect_sphere, tmp_path / "two", stop_at="ir", refuse_rounds=2)
+    r, _ = _run(kinect_sphere, tmp_path / "two", stop_at="ir", refuse_rounds=2, refuse_voxel_scale=2 / 3)
     assert any("fused again (2 rounds" in m for m in r.messages), r.messages
+    # the re-fusion's voxel is 2/3 of tracking's in every round (not 4/9 in the second)
+    gp = r.geometry.gp
+    assert gp.fusion.config.voxel_size == pytest.approx(gp._tracking_voxel * 2 / 3)
+    with pytest.raises(AppFusionError, match="refuse_voxel_scale"):
+        _run(kinect_sphere, tmp_path / "tiny", refuse_voxel_scale=0.1)
 
 
 def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere, tmp_path):
