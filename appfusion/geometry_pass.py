@@ -237,6 +237,7 @@ class GeometryPass:
         self.marker_config = cfg.markers or marker_config_from_meta(meta)
         self.intrinsics = intrinsics
         self.fusion: TSDFFusion | None = None
+        self._tracking_voxel: float | None = None
         self.tracker = MarkerTracker(self.marker_config)
         self.states: list[FrameState] = []
         self.box: ObjectBox | None = None
@@ -372,6 +373,7 @@ class GeometryPass:
         if self.fusion is None:
             fc = replace(self.config.fusion or FusionConfig(), voxel_size=self._voxel(det, K))
             self.fusion = TSDFFusion(K, fc)
+            self._tracking_voxel = fc.voxel_size       # refuse's volume is scaled from this one
             if det is not None:
                 self.tracker.update(det, self.fusion.pose)
                 if self.tracker.initialised:
@@ -458,8 +460,7 @@ class GeometryPass:
         fc = self.fusion.config
         if self.config.refuse_voxel_scale != 1.0:
             # scaled from tracking's voxel, also in a second round (whose volume is already scaled)
-            base = self.__dict__.setdefault("_tracking_voxel", fc.voxel_size)
-            fc = replace(fc, voxel_size=base * float(self.config.refuse_voxel_scale))
+            fc = replace(fc, voxel_size=self._tracking_voxel * float(self.config.refuse_voxel_scale))
         new = TSDFFusion(self.fusion.intrinsics, fc)
         if self.fusion.roi is not None:
             new.set_roi(*self.fusion.roi)
