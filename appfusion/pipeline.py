@@ -50,8 +50,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
 #: automatic k with split_gain 3; 19: the captured map's blur variance and S read at the effective
 #: roughness; 20: the normal filter's stages run only while it converges; 21: refuse_voxel_scale in
-#: the configuration)
-CHECKPOINT_VERSION = 21
+#: the configuration; 22: specular normal refinement, its normals saved with the RGB stage)
+CHECKPOINT_VERSION = 22
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -120,6 +120,17 @@ class ScanConfig:
         sit: relit on the pepper 0.370 -> 0.204, vase 0.244 -> 0.230, demo 0.0387 -> 0.0315; but
         seed 3 0.057 -> 0.080 and the sphere 0.018 -> 0.021, and the normals' median rose on the
         capsules and the sphere (demo 0.085 -> 0.109 deg), so it is not the default.
+    normal_refine_rounds : int
+        Sweeps of specular normal refinement after the RGB pass (:mod:`appfusion.normal_refine`;
+        beyond the paper): each glossy point's normal moves to the candidate whose highlights fit its
+        RGB samples significantly better, the candidates' tilt halved each round. 0: off.
+    normal_refine_deg : float
+        Largest tilt of the first round's candidates, degrees (rings at this and at half of it).
+    normal_refine_screen : float or None
+        The first round refines only the glossy points whose residual variance is over this many times
+        the median (:class:`appfusion.normal_refine.NormalRefiner`'s ``screen``); None: all of them.
+    normal_refine_min_gain : float
+        Fraction of a point's residual a move must explain (``NormalRefiner``'s ``min_gain``).
     ir_rim_m : float
         Points within this distance of the fused surface's open boundary (where the object box cut it
         off the support plane) stay out of the IR pass's Ward fits (``rim`` of
@@ -172,6 +183,10 @@ class ScanConfig:
     refuse_geometry: bool = True
     refuse_rounds: int = 1
     refuse_voxel_scale: float = 1.0
+    normal_refine_rounds: int = 0
+    normal_refine_deg: float = 3.0
+    normal_refine_screen: float | None = None
+    normal_refine_min_gain: float = 0.0
     ir_rim_m: float = 0.004
     ir_interior_m: float = 0.005
     ir_pattern: bool = True
@@ -364,6 +379,13 @@ class ScanRunner:
         if self.config.refuse_geometry and not int(self.config.refuse_rounds) >= 1:
             raise AppFusionError(f"scan config: refuse_rounds must be at least 1 (refuse_geometry=False turns the "
                                  f"re-registration off), got {self.config.refuse_rounds}")
+        c = self.config
+        if not (int(c.normal_refine_rounds) >= 0 and 0 < float(c.normal_refine_deg) <= 20
+                and 0 <= float(c.normal_refine_min_gain) < 1
+                and (c.normal_refine_screen is None or float(c.normal_refine_screen) > 0)):
+            raise AppFusionError(f"scan config: normal refinement needs rounds >= 0, 0 < deg <= 20, 0 <= min_gain < 1 "
+                                 f"and screen None or > 0; got {c.normal_refine_rounds}, {c.normal_refine_deg}, "
+                                 f"{c.normal_refine_min_gain}, {c.normal_refine_screen}")
         self.log = log or (lambda msg: None)
         self.show_progress = progress
         self._ctl = _Control()
@@ -913,6 +935,8 @@ class ScanRunner:
         rgb_arrays = self._reuse("rgb", "rho_d / rho_s")
         if rgb_arrays is not None:
             self._rgb_result = rgb_arrays
+            if "normals" in rgb_arrays and self.points is not None:     # refined (_refine_normals)
+                self.points = (self.points[0], np.asarray(rgb_arrays["normals"], np.float32))
             return
         P, N = self.points
         labels = self._current_labels()
@@ -958,6 +982,8 @@ class ScanRunner:
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
                             "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
+        if self.config.normal_refine_rounds > 0:
+            self._refine_normals(start, stop, pass_name)
         if r.heldout_rss is not None:
             ward = r.rho_s_ward if r.rho_s_ward is not None else np.full((len(r.model), 3), np.nan)
             zs = r.heldout_z if r.heldout_z is not None else np.full(len(r.model), np.nan)
@@ -970,6 +996,50 @@ class ScanRunner:
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
         self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
                    + "; ".join(", ".join(f"{v:.3f}" for v in row) for row in self._rgb_result["rho_s"]))
+
+    def _refine_normals(self, start: int, stop: int, pass_name: str) -> None:
+        """Specular normal refinement (:mod:`appfusion.normal_refine`): ``normal_refine_rounds`` more
+        sweeps of the RGB frames with the final clusters, lobes and rho_s; the moved points get their
+        new normals (``self.points``) and their rho_d solved again. The normals are saved with the RGB
+        stage (``rgb.npz``), so a resumed scan keeps them."""
+        from .normal_refine import NormalRefiner
+
+        res = self._rgb_result
+        rho_s = np.where((np.asarray(res["model"]) == "diffuse")[:, None], 0.0, np.asarray(res["rho_s"], np.float64))
+        if not (rho_s.max(axis=1) > 0).any():
+            return
+        P, N = self.points
+        rho_d = np.asarray(res["rho_d"], np.float32).copy()
+        t_rgb = self.timings.get("rgb")
+        deg = float(self.config.normal_refine_deg)
+        moved = None
+        for k in range(int(self.config.normal_refine_rounds)):
+            # round 1: the points whose highlights the pass fits worst; later rounds: the ones that moved
+            ref = NormalRefiner(self.rgb, rho_s, N, radii_deg=(deg / 2, deg), only=moved,
+                                min_gain=self.config.normal_refine_min_gain,
+                                screen=self.config.normal_refine_screen if moved is None else None)
+            if not len(ref.sel):
+                break
+            self._rgb_sweep(ref, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
+            N, rd, st = ref.result()
+            moved = np.isfinite(rd).all(axis=1)
+            rho_d[moved] = np.clip(rd[moved], 0.0, None)
+            self._note(f"rgb: normal refinement round {k + 1} (tilts {deg / 2:.2g}, {deg:.2g} deg): "
+                       f"{st['moved']} of {st['points']} points moved (median {st['median_move_deg']:.2f} deg, "
+                       f"residual explained {st['gain_pct']}; "
+                       f"{100 * st['full_fraction']:.0f} % of {st['samples']} samples near a highlight), "
+                       f"{st['seconds']:.1f} s")
+            if not moved.any():
+                break
+            if st["median_move_deg"] < 0.9 * deg:             # most moves stopped short of the outer ring:
+                deg /= 2                                      # finer; else walk on at the same tilts
+        self.timings["normal-refine"] = self.timings.pop("rgb", {})
+        if t_rgb is not None:
+            self.timings["rgb"] = t_rgb
+        self.points = (P, N.astype(np.float32))
+        res["rho_d"] = rho_d
+        res["normals"] = self.points[1]
+        self._publish(force=True, normals=self.points[1])
 
     def _rgb_sweep(self, rgb, start: int, stop: int, pass_name: str, live: bool,
                    calibrated: dict | None = None) -> int:

@@ -584,29 +584,9 @@ class RGBPass:
         return ((u - np.float32(K.cx)) * (z / np.float32(K.fx)), (v - np.float32(K.cy)) * (z / np.float32(K.fy)), z)
 
     def _update(self, rgb, pts, Xd, Ki: Intrinsics, T, E) -> int:
+        pts, col, C = self._lookup_rgb(rgb, pts, Xd, Ki, T, E)
         if len(pts) == 0:
             return 0
-        H, W = rgb.shape[:2]
-        # depth-camera point -> RGB camera -> RGB pixel
-        x, y, z = Xd
-        R = E[:3, :3].astype(np.float32)
-        t = E[:3, 3].astype(np.float32)
-        xr = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-        yr = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-        zr = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ur = np.float32(Ki.fx) * xr / zr + np.float32(Ki.cx)
-            vr = np.float32(Ki.fy) * yr / zr + np.float32(Ki.cy)
-        ok = (zr > 1e-3) & (ur >= -0.5) & (ur < W - 0.5) & (vr >= -0.5) & (vr < H - 0.5)
-        if not ok.all():
-            pts, ur, vr = pts[ok], ur[ok], vr[ok]
-        if len(pts) == 0:
-            return 0
-        # nearest RGB pixel (the RGB image is sampled where the depth pixel lands)
-        ui = np.clip(np.rint(ur).astype(np.int64), 0, W - 1)
-        vi = np.clip(np.rint(vr).astype(np.int64), 0, H - 1)
-        col = rgb.reshape(-1, 3).take(vi * W + ui, axis=0)
-        C = (T @ invert_pose(E))[:3, 3]                      # RGB camera centre, world
         if self.registration == "points":                    # one pixel per point already: _add skips
             return self._add(pts, col, C, np.zeros(len(pts), bool), unique=True)   # clipped / NaN ones
         c0, c1, c2 = col[:, 0], col[:, 1], col[:, 2]            # channel-wise: reductions along the
@@ -623,6 +603,32 @@ class RGBPass:
         L = np.stack([np.bincount(pts, weights=col[:, c], minlength=n)[p] for c in range(3)], axis=1) / k[:, None]
         satp = np.bincount(pts, weights=sat.astype(np.float64), minlength=n)[p] > 0
         return self._add(p, L, C, satp, unique=True)
+
+    def _lookup_rgb(self, rgb, pts, Xd, Ki: Intrinsics, T, E) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The RGB pixel of each registered sample: internal point indices ``pts`` (k,) and their
+        depth-camera coordinates ``Xd`` -> (points kept (m,), their RGB (m, 3), RGB camera centre in
+        the world (3,)); samples that fall outside the RGB image are dropped."""
+        C = (T @ invert_pose(E))[:3, 3]                      # RGB camera centre, world
+        if len(pts) == 0:
+            return pts, np.zeros((0, 3), np.float32), C
+        H, W = rgb.shape[:2]
+        # depth-camera point -> RGB camera -> RGB pixel
+        x, y, z = Xd
+        R = E[:3, :3].astype(np.float32)
+        t = E[:3, 3].astype(np.float32)
+        xr = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+        yr = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+        zr = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ur = np.float32(Ki.fx) * xr / zr + np.float32(Ki.cx)
+            vr = np.float32(Ki.fy) * yr / zr + np.float32(Ki.cy)
+        ok = (zr > 1e-3) & (ur >= -0.5) & (ur < W - 0.5) & (vr >= -0.5) & (vr < H - 0.5)
+        if not ok.all():
+            pts, ur, vr = pts[ok], ur[ok], vr[ok]
+        # nearest RGB pixel (the RGB image is sampled where the depth pixel lands)
+        ui = np.clip(np.rint(ur).astype(np.int64), 0, W - 1)
+        vi = np.clip(np.rint(vr).astype(np.int64), 0, H - 1)
+        return pts, rgb.reshape(-1, 3).take(vi * W + ui, axis=0), C
 
     def add_samples(self, point_idx: np.ndarray, L: np.ndarray, camera_center: np.ndarray,
                     saturated: np.ndarray | None = None) -> int:

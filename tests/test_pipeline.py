@@ -216,3 +216,24 @@ def test_geometry_poses_passed_on_are_only_those_of_tracked_frames():
     *_, poses = g.finish(2)
     assert sorted(poses) == [11, 13]
     assert np.array_equal(poses[13], pose[3])
+
+
+def test_normal_refinement_rounds_run_are_saved_and_kept_on_resume(kinect_sphere, tmp_path):
+    import pytest
+
+    from appfusion.errors import AppFusionError
+
+    with pytest.raises(AppFusionError, match="normal refinement"):
+        _run(kinect_sphere, tmp_path / "bad", normal_refine_rounds=-1)
+    out = tmp_path / "nr"
+    r1, res1 = _run(kinect_sphere, out, normal_refine_rounds=2)
+    notes = [m for m in r1.messages if "normal refinement round" in m]
+    assert notes and "points moved" in notes[0], r1.messages
+    saved = np.load(out / "state" / "rgb.npz")
+    np.testing.assert_array_equal(saved["normals"], res1.normals)
+    assert np.allclose(np.linalg.norm(res1.normals, axis=1), 1, atol=1e-5)
+    assert np.isfinite(res1.rho_d).all()
+    assert "normal-refine" in res1.info["timings"]
+    r2, res2 = _run(kinect_sphere, out, normal_refine_rounds=2)      # resumed: every stage reused
+    assert any("rgb: reusing" in m for m in r2.messages)
+    np.testing.assert_array_equal(res2.normals, res1.normals)
