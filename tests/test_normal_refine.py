@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from _rgb_sphere import sphere_frames
 from appfusion.errors import AppFusionError
 from appfusion.normal_refine import NormalRefiner, candidate_normals, tangent_frames
 from appfusion.rgb_pass import RGBPass
-from appfusion.rgb_synth import orbit_poses, two_material_sphere
 
 TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}
 
@@ -39,11 +39,7 @@ def test_candidate_normals_are_unit_rings_at_the_given_tilts():
 
 @pytest.fixture(scope="module")
 def tilted_run():
-    sc = two_material_sphere(1200, env_n=32, seed=0, image_scale=0.4,
-                             materials=((0.08, (0.35, 0.3, 0.25)), (0.25, (0.5, 0.5, 0.5))))
-    poses = orbit_poses(sc.center, 0.45, 32, seed=1)
-    rng = np.random.default_rng(5)
-    frames = [sc.render(T, rng, noise_rel=0.01, noise_abs=0.001) for T in poses]
+    sc, poses, rng, frames = sphere_frames()
     # half of the points' normals tilted by 3 degrees, each in its own random direction
     tilted = rng.random(len(sc.normals)) < 0.5
     t, b = tangent_frames(sc.normals)

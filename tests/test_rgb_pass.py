@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
+from _rgb_sphere import sphere_frames
 from appfusion.errors import AppFusionError
 from appfusion.rgb_pass import RGBPass, histogram_percentile
-from appfusion.rgb_synth import orbit_poses, two_material_sphere
 
 # tables for the tests: coarser r grids than the defaults (faster to build, S ~1.5 % RMS)
 TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}
@@ -21,11 +21,7 @@ TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}
 
 @pytest.fixture(scope="module")
 def sphere_run():
-    sc = two_material_sphere(1200, env_n=32, seed=0, image_scale=0.4,
-                             materials=((0.08, (0.35, 0.3, 0.25)), (0.25, (0.5, 0.5, 0.5))))
-    poses = orbit_poses(sc.center, 0.45, 32, seed=1)
-    rng = np.random.default_rng(5)
-    frames = [sc.render(T, rng, noise_rel=0.01, noise_abs=0.001) for T in poses]
+    sc, poses, rng, frames = sphere_frames()
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, table_kwargs=TABLES)
     for (rgb, depth, _), T in zip(frames, poses):
         rp.add_frame(rgb, depth, sc.rgb_intrinsics, sc.depth_intrinsics, T, sc.depth_to_rgb)
