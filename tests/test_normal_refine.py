@@ -9,12 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from _rgb_sphere import sphere_frames
+from _rgb_sphere import TABLES, sphere_frames
 from appfusion.errors import AppFusionError
 from appfusion.normal_refine import NormalRefiner, candidate_normals, tangent_frames
 from appfusion.rgb_pass import RGBPass
-
-TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}
 
 
 def _angle(a, b):

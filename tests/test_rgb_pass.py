@@ -11,12 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from _rgb_sphere import sphere_frames
+from _rgb_sphere import TABLES, sphere_frames
 from appfusion.errors import AppFusionError
 from appfusion.rgb_pass import RGBPass, histogram_percentile
-
-# tables for the tests: coarser r grids than the defaults (faster to build, S ~1.5 % RMS)
-TABLES = {"r_res": lambda a: 65 if a < 0.15 else 41, "d_res": 49}
 
 
 @pytest.fixture(scope="module")
