@@ -389,3 +389,32 @@ def test_relit_error_and_its_interior_figure(tmp_path):
     ref[20, 24] *= 2                                              # the sphere's centre
     e2, e2_in = errors(ref)
     assert e2 > 0.01 and e2_in > e2
+
+
+def test_render_view_does_not_interpolate_normals_across_a_crease():
+    """A roof ridge (two faces at +-45 degrees) whose mesh, like a TSDF's, cuts the ridge off with a
+    flat 4 mm strip; the points lie on the faces with their faces' normals. Lit by a uniform upper
+    hemisphere, a 45-degree face reflects (1 + cos 45) / 2 of what an upward normal does. Across the
+    strip, interpolated vertex normals sweep through upward and light a bright band the object does
+    not have; with ``crease_deg`` the strip's hits take their nearest point's normal."""
+    xs = np.array([-0.05, -0.002, 0.002, 0.05])
+    V = np.array([[x, y, -abs(x)] for y in (-0.05, 0.05) for x in xs])
+    F = np.array([[0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6]])
+    g = np.linspace(-0.05, 0.05, 201)
+    gx, gy = np.meshgrid(g, g)
+    P = np.stack([gx.ravel(), gy.ravel(), -np.abs(gx.ravel())], 1)
+    s = np.sqrt(0.5)
+    Nrm = np.stack([np.where(P[:, 0] < 0, -s, s), np.zeros(len(P)), np.full(len(P), s)], 1)
+    r = ScanResult(P, Nrm, np.full((len(P), 3), 0.5), np.zeros(len(P), np.int32), [[0, 0, 0]], [0.3],
+                   mesh_vertices=V, mesh_faces=F)
+    K = Intrinsics(81, 81, 400, 400, 40.0, 40.0)               # 0.5 mm a pixel at 0.2 m
+    pose = make_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.2])
+    env = _const_env(8, 1.0)
+    env[1] = 0.0                                               # light from above only
+    face = 0.5 * (1 + s) / 2
+    sharp, mask = render_view(r, env, K, pose, spp=64, shadows=False)
+    smooth, _ = render_view(r, env, K, pose, spp=64, shadows=False, crease_deg=None)
+    row_sharp, row_smooth = sharp[40, 30:51, 1], smooth[40, 30:51, 1]   # x from -5 to +5 mm
+    assert mask[40].all()
+    assert np.max(np.abs(row_sharp - face)) < 0.03 * face, row_sharp
+    assert np.max(row_smooth) > 0.48                           # the interpolated strip: ~0.5 at its middle

@@ -20,6 +20,10 @@ def register(sub) -> None:
     p.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel per strategy (default 64)")
     p.add_argument("--no-shadows", action="store_true")
+    p.add_argument("--crease-deg", type=float, default=30.0,
+                   help="shade hits on a triangle whose vertex normals differ by more than this (degrees) with "
+                        "the nearest point's normal, not interpolated across the crease (default 30; 0: always "
+                        "interpolate)")
     p.add_argument("--out", type=Path, default=None, help="output file stem (default RESULT/render)")
     p.set_defaults(func=run)
 
@@ -73,6 +77,8 @@ def run(args) -> int:
     from appfusion.relight import render_view
     from appfusion.result import ScanResult
 
+    if not (np.isfinite(args.crease_deg) and 0 <= args.crease_deg <= 180):
+        raise AppFusionError(f"render: --crease-deg must be in [0, 180] degrees, got {args.crease_deg}")
     res = ScanResult.load(args.result)
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
@@ -87,7 +93,8 @@ def run(args) -> int:
 
         env = EnvMap.load(args.env, n=64).radiance
     K, pose = parse_view(args.view, res, (w, h))
-    img, mask = render_view(res, env, K, pose, spp=args.spp, shadows=not args.no_shadows)
+    img, mask = render_view(res, env, K, pose, spp=args.spp, shadows=not args.no_shadows,
+                            crease_deg=args.crease_deg or None)
     stem = args.out or (args.result if args.result.is_dir() else args.result.parent) / "render"
     stem.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(stem.with_suffix(".exr")), np.ascontiguousarray(img[..., ::-1]))
