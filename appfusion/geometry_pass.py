@@ -34,7 +34,7 @@ from .fusion import (FusionConfig, TSDFFusion, _skew, _twist_to_pose, anchor_inf
                      downsample_depth, kabsch, voxel_size_for_box)
 from .markers import (MarkerConfig, MarkerDetection, MarkerTracker, ObjectBox, detect_markers,
                       marker_config_from_meta)
-from .points import PointGrid, bilateral_filter_normals, sample_points
+from .points import PointGrid, bilateral_filter_normals, sample_points, sharpen_creases
 
 __all__ = ["GeometryConfig", "FrameState", "GeometryResult", "GeometryPass", "PoseRefiner"]
 
@@ -89,9 +89,19 @@ class GeometryConfig:
         varies non-linearly over the kernel everywhere the stages drifted: the pepper's normals
         0.93 deg after the three passes, 4.6 deg after the stages; the vase's 1.11 -> 0.35 deg with the
         test, the capsules' unchanged (their stages' rates fall to 0.4-0.5 of the previous).
+    crease_radius_voxels : float or None
+        After the normal filter, points near a sharp crease take the normal of a one-sided plane fit
+        (:func:`appfusion.points.sharpen_creases`, radius this many voxels; session 17). None: off.
     refuse_voxel_scale : float
         Voxel of :meth:`GeometryPass.refuse`'s fresh TSDF as a fraction of tracking's (the scan
         passes ``ScanConfig.refuse_voxel_scale``, 1 by default); the normal filter's width follows it.
+    refuse_trunc_voxels : float or None
+        Truncation of that re-fusion, in its voxels (None, the default: tracking's
+        ``FusionConfig.trunc_voxels``, 4). A ray that hits an overhanging edge (a lid's rim seen from
+        above) writes "behind the surface" into the free space under the edge for a truncation's
+        length along the ray, and the views that see that space are few: the vase's neck bulged out
+        1.5-2.4 mm over the 10 mm below its lid at 4 voxels, 0.15-0.4 mm at 2 (session 17). 2 is not
+        the default: seed 3's relit error rose 0.057 -> 0.066 (docs/geometry-pass.md).
     min_component : float
         Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
         are dropped (flying fragments).
@@ -118,7 +128,9 @@ class GeometryConfig:
     bilateral_adaptive_stages: tuple[int, ...] = (3, 6, 12)
     bilateral_adaptive_c: float = 2.5
     bilateral_adaptive_converge: float | None = 0.7
+    crease_radius_voxels: float | None = 2.5
     refuse_voxel_scale: float = 1.0
+    refuse_trunc_voxels: float | None = None
     min_component: float = 0.02
     hole_radius: float = 0.01
     seed: int = 0
@@ -461,6 +473,8 @@ class GeometryPass:
         if self.config.refuse_voxel_scale != 1.0:
             # scaled from tracking's voxel, also in a second round (whose volume is already scaled)
             fc = replace(fc, voxel_size=self._tracking_voxel * float(self.config.refuse_voxel_scale))
+        if self.config.refuse_trunc_voxels is not None:
+            fc = replace(fc, trunc_voxels=float(self.config.refuse_trunc_voxels))
         new = TSDFFusion(self.fusion.intrinsics, fc)
         if self.fusion.roi is not None:
             new.set_roi(*self.fusion.roi)
@@ -543,6 +557,8 @@ class GeometryPass:
                                       adaptive_stages=cfg.bilateral_adaptive_stages,
                                       adaptive_c=cfg.bilateral_adaptive_c,
                                       adaptive_converge=cfg.bilateral_adaptive_converge)
+        if cfg.crease_radius_voxels is not None:
+            Nf = sharpen_creases(P, Nf, radius=float(cfg.crease_radius_voxels) * vs, seed=cfg.seed)
         poses = np.full((len(self.states), 4, 4), np.nan)
         for i, s in enumerate(self.states):
             if s.pose is not None:

@@ -50,8 +50,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: 18: no elevation weights on the anchors, lost frames' stale poses no longer passed on, the IR's
 #: automatic k with split_gain 3; 19: the captured map's blur variance and S read at the effective
 #: roughness; 20: the normal filter's stages run only while it converges; 21: refuse_voxel_scale in
-#: the configuration; 22: specular normal refinement, its normals saved with the RGB stage)
-CHECKPOINT_VERSION = 22
+#: the configuration; 22: specular normal refinement, its normals saved with the RGB stage; 23: normals
+#: sharpened at creases, the re-fusion's truncation in the configuration)
+CHECKPOINT_VERSION = 23
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -120,6 +121,16 @@ class ScanConfig:
         sit: relit on the pepper 0.370 -> 0.204, vase 0.244 -> 0.230, demo 0.0387 -> 0.0315; but
         seed 3 0.057 -> 0.080 and the sphere 0.018 -> 0.021, and the normals' median rose on the
         capsules and the sphere (demo 0.085 -> 0.109 deg), so it is not the default.
+    refuse_trunc_voxels : float or None
+        Truncation of that re-fusion in voxels (session 17; :class:`appfusion.geometry_pass.GeometryConfig`);
+        None (default): tracking's 4. A ray that hits an overhanging edge writes "behind the surface"
+        into the free space under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm
+        below its lid at 4 voxels, 0.15-0.4 mm at 2. Relit at 4 / 3 / 2 voxels (one run each):
+        demo 0.0387 / 0.0384 / 0.0352, seed 3 0.057 / 0.058 / 0.066, vase (creases sharpened) 0.162 /
+        0.183 / 0.145; so not the default (docs/geometry-pass.md).
+    crease_radius_voxels : float or None
+        Normals near sharp creases from one-sided plane fits (:func:`appfusion.points.sharpen_creases`;
+        session 17), within this many voxels; None: off. No point of the capsules qualifies.
     normal_refine_rounds : int
         Sweeps of specular normal refinement after the RGB pass (:mod:`appfusion.normal_refine`;
         beyond the paper): each glossy point's normal moves to the candidate whose highlights fit its
@@ -183,6 +194,8 @@ class ScanConfig:
     refuse_geometry: bool = True
     refuse_rounds: int = 1
     refuse_voxel_scale: float = 1.0
+    refuse_trunc_voxels: float | None = None
+    crease_radius_voxels: float | None = 2.5
     normal_refine_rounds: int = 0
     normal_refine_deg: float = 3.0
     normal_refine_screen: float | None = None
@@ -380,6 +393,10 @@ class ScanRunner:
             raise AppFusionError(f"scan config: refuse_rounds must be at least 1 (refuse_geometry=False turns the "
                                  f"re-registration off), got {self.config.refuse_rounds}")
         c = self.config
+        for name in ("refuse_trunc_voxels", "crease_radius_voxels"):
+            v = getattr(c, name)
+            if v is not None and not (np.isfinite(float(v)) and 1.0 <= float(v) <= 8.0):
+                raise AppFusionError(f"scan config: {name} must be None or in [1, 8] voxels, got {v}")
         if not (int(c.normal_refine_rounds) >= 0 and 0 < float(c.normal_refine_deg) <= 20
                 and 0 <= float(c.normal_refine_min_gain) < 1
                 and (c.normal_refine_screen is None or float(c.normal_refine_screen) > 0)):
@@ -1717,7 +1734,9 @@ class _Geometry:
         from .geometry_pass import GeometryConfig, GeometryPass
 
         gcfg = GeometryConfig(n_points=config.n_points, box_height=config.box_height_m,
-                              refuse_voxel_scale=float(config.refuse_voxel_scale))
+                              refuse_voxel_scale=float(config.refuse_voxel_scale),
+                              refuse_trunc_voxels=config.refuse_trunc_voxels,
+                              crease_radius_voxels=config.crease_radius_voxels)
         fc = {} if surface else {"surface_max_incidence_deg": None}
         if config.voxel_m:
             fc["voxel_size"] = config.voxel_m
