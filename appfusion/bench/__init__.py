@@ -57,6 +57,7 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "ate_mm": ("mm", 5.0, "lower"),
     "chamfer_mm": ("mm", 2.0, "lower"),
     "normal_err_deg": ("deg", 3.0, "lower"),
+    "crease_normal_err_deg": ("deg", None, "lower"),           # points within 6 mm of the object's sharp edges
     "marker_detect_rate": ("fraction", 0.99, "higher"),
     "white_err": ("fraction", 0.01, "lower"),
     "envmap_median_rel_err": ("fraction", 0.05, "lower"),

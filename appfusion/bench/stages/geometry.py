@@ -11,6 +11,11 @@ Metrics:
 - ``chamfer_mm``: symmetric mean distance between the mesh in the object box and the true object
   (mesh -> object surface, and object points seen in some frame -> mesh);
 - ``normal_err_deg``: median angle between the sampled points' filtered normals and the true ones;
+- ``crease_normal_err_deg``: the same over the points near the box's and the cylinder's sharp edges
+  (a point within 6 mm of another whose true normal differs by over 30 degrees), normals sharpened
+  at creases (:func:`appfusion.points.sharpen_creases`, session 17); on the full bench
+  ``extra["geometry"]["crease"]`` also holds the figure without the sharpening (``GeometryPass.result`` again with
+  ``GeometryConfig.crease_radius_voxels = None``) and the seconds each took;
 - ``marker_detect_rate``: frames with all four circles found / frames where all four are fully visible;
 - ``white_err``: median over frames of the largest channel error of a held-out circle after white
   balance from the other three (relative to its white level);
@@ -141,6 +146,33 @@ def run(ctx) -> dict:
     err = geometry_errors(seq, res)
     truth, nerr = err["_truth"], err["_nerr"]
     gn = truth.compute_closest_points(o3d.core.Tensor(res.points.astype(np.float32)))["primitive_normals"].numpy()
+    # -- normals at sharp edges, with and without sharpen_creases ------------------------------------
+    from scipy.spatial import cKDTree
+
+    def near_crease(points, normals_true):
+        """Points within 6 mm of another whose true normal differs by over 30 degrees."""
+        d, j = cKDTree(points).query(points, k=48, distance_upper_bound=0.006)
+        ok = np.isfinite(d)
+        cosg = np.abs(np.einsum("nkc,nc->nk", normals_true[np.where(ok, j, 0)], normals_true))
+        return (ok & (cosg < np.cos(np.radians(30.0)))).any(1)
+
+    near = near_crease(res.points, gn)
+    crease = {"points": int(near.sum()), "median_deg": float(np.median(nerr[near])) if near.any() else None,
+              "p90_deg": float(np.percentile(nerr[near], 90)) if near.any() else None}
+    if not ctx.quick:                       # the same without the sharpening (5-10 s more)
+        gp.config.crease_radius_voxels = None
+        t2 = time.perf_counter()
+        res_off = gp.result()
+        t_off = time.perf_counter() - t2
+        gp.config.crease_radius_voxels = GeometryConfig().crease_radius_voxels
+        gn_off = truth.compute_closest_points(o3d.core.Tensor(res_off.points.astype(np.float32)))["primitive_normals"].numpy()
+        nerr_off = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", res_off.normals, gn_off)), 0, 1)))
+        near_off = near_crease(res_off.points, gn_off)
+        crease.update({"points_off": int(near_off.sum()),
+                       "median_deg_off": float(np.median(nerr_off[near_off])) if near_off.any() else None,
+                       "p90_deg_off": float(np.percentile(nerr_off[near_off], 90)) if near_off.any() else None,
+                       "seconds_with": round(t_result, 2), "seconds_without": round(t_off, 2),
+                       "normal_err_deg_off": float(np.median(nerr_off))})
     visible = seq.markers_visible.all(1)
     found = np.array([s.markers_complete for s in states])
     detect_rate = float(found[visible].mean()) if visible.any() else None
@@ -189,6 +221,7 @@ def run(ctx) -> dict:
         "box_half_side_err_mm": float(abs(res.box.half_x - seq.side / 2) * 1e3),
         "white_err_max": float(max(werr)) if werr else None,
         "source": "appfusion.geometry_synth (own ray-cast sequence; replay/synth to be wired in)",
+        "crease": crease,
     }
     # -- skip: frames that add no new coverage skip fusion -----------------------------------------------
     default = default_keyframe_setting()
@@ -210,6 +243,7 @@ def run(ctx) -> dict:
         "ate_mm": err["ate_mm"],
         "chamfer_mm": err["chamfer_mm"],
         "normal_err_deg": float(np.median(nerr)),
+        "crease_normal_err_deg": crease["median_deg"],
         "marker_detect_rate": detect_rate,
         "white_err": float(np.median(werr)) if werr else None,
         "fps_tracking_fusion": 1.0 / frame_s,
