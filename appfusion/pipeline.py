@@ -120,7 +120,13 @@ class ScanConfig:
         tracking itself at 2 mm lost frames) keeps more of a sharp rim's shape, where the sun's glints
         sit: relit on the pepper 0.370 -> 0.204, vase 0.244 -> 0.230, demo 0.0387 -> 0.0315; but
         seed 3 0.057 -> 0.080 and the sphere 0.018 -> 0.021, and the normals' median rose on the
-        capsules and the sphere (demo 0.085 -> 0.109 deg), so it is not the default.
+        capsules and the sphere (demo 0.085 -> 0.109 deg), so it is not the default; since session
+        17 ``refuse_fine_scale`` applies it where the object curves tightly.
+    refuse_fine_scale : float or None
+        The re-fusion's voxel scale where the object curves tightly (session 17;
+        ``GeometryConfig.refuse_fine_scale``): with ``refuse_voxel_scale`` 1, if at least 1 % of the
+        first mesh's vertices curve tighter than 6.5 voxels (pepper 2.2 %, vase 2.8 %, the capsules
+        none), the re-fusion runs at this fraction of tracking's voxel (2/3: 2 mm for 3). None: never.
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion in voxels (session 17; :class:`appfusion.geometry_pass.GeometryConfig`);
         None (default): tracking's 4. A ray that hits an overhanging edge writes "behind the surface"
@@ -194,6 +200,7 @@ class ScanConfig:
     refuse_geometry: bool = True
     refuse_rounds: int = 1
     refuse_voxel_scale: float = 1.0
+    refuse_fine_scale: float | None = 2.0 / 3.0
     refuse_trunc_voxels: float | None = None
     crease_radius_voxels: float | None = 2.5
     normal_refine_rounds: int = 0
@@ -393,6 +400,8 @@ class ScanRunner:
             raise AppFusionError(f"scan config: refuse_rounds must be at least 1 (refuse_geometry=False turns the "
                                  f"re-registration off), got {self.config.refuse_rounds}")
         c = self.config
+        if c.refuse_fine_scale is not None and not 0.25 <= float(c.refuse_fine_scale) <= 1.0:
+            raise AppFusionError(f"scan config: refuse_fine_scale must be None or in [0.25, 1], got {c.refuse_fine_scale}")
         for name in ("refuse_trunc_voxels", "crease_radius_voxels"):
             v = getattr(c, name)
             if v is not None and not (np.isfinite(float(v)) and 1.0 <= float(v) <= 8.0):
@@ -820,6 +829,13 @@ class ScanRunner:
                     break
             if n:
                 how = f"{rounds} rounds, " if rounds > 1 else ""
+                gp = self.geometry.gp
+                if gp.refuse_scale not in (None, 1.0):
+                    how += f"at {gp.fusion.config.voxel_size * 1e3:.1f} mm voxels"
+                    if gp.tight_fraction is not None:
+                        how += (f": {gp.tight_fraction:.1%} of the object curves tighter than "
+                                f"{gp.config.refuse_fine_radius_voxels:g} voxels")
+                    how += ", "
                 self._note(f"geometry: {n} frames re-registered to the fused object with their circles and fused "
                            f"again ({how}{time.perf_counter() - t0:.0f} s)")
         V, F, P, N, poses = self.geometry.finish(cfg.n_points)
@@ -1735,6 +1751,7 @@ class _Geometry:
 
         gcfg = GeometryConfig(n_points=config.n_points, box_height=config.box_height_m,
                               refuse_voxel_scale=float(config.refuse_voxel_scale),
+                              refuse_fine_scale=config.refuse_fine_scale,
                               refuse_trunc_voxels=config.refuse_trunc_voxels,
                               crease_radius_voxels=config.crease_radius_voxels)
         fc = {} if surface else {"surface_max_incidence_deg": None}

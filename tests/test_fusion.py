@@ -647,3 +647,33 @@ def test_anchor_error_across_the_support_plane_weighs_anchor_normal_weight():
         assert abs(t[0] - 0.002) < 1e-4 and abs(t[1]) < 1e-4
     assert 0.0 < plain[2] < heavy[2] < 0.004
     assert heavy[2] > 2 * plain[2]
+
+
+def _icosphere_mesh(radius, level, centre=(0.0, 0.0, 0.0)):
+    m = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_midpoint(level)
+    v = np.asarray(m.vertices)
+    m.vertices = o3d.utility.Vector3dVector(radius * v / np.linalg.norm(v, axis=1, keepdims=True) + centre)
+    return m
+
+
+def test_tight_curvature_fraction_tells_a_tight_rim_from_a_capsule():
+    """The re-fusion's voxel test (GeometryConfig.refuse_fine_scale): a 1 cm sphere curves tighter
+    than 2 cm everywhere, a 4 cm one nowhere, even with 20 um of radial noise on its ~2 mm mesh; a
+    4 cm sphere with a 1 cm one fused onto it (a knob) has the knob's share of its vertices."""
+    from appfusion.geometry_pass import tight_curvature_fraction
+
+    big = _icosphere_mesh(0.04, 6)                   # ~1.5 mm edges, like a 3 mm TSDF's
+    small = _icosphere_mesh(0.01, 4)
+    assert tight_curvature_fraction(big, 0.02) == 0.0
+    assert tight_curvature_fraction(small, 0.02) > 0.95
+    knob = _icosphere_mesh(0.01, 4, (0.0, 0.0, 0.048))
+    both = big + knob
+    f = tight_curvature_fraction(both, 0.02)
+    share = len(knob.vertices) / len(both.vertices)
+    assert 0.5 * share < f < 1.5 * share, (f, share)
+    rng = np.random.default_rng(0)
+    v = np.asarray(big.vertices)
+    noisy = o3d.geometry.TriangleMesh(big)
+    noisy.vertices = o3d.utility.Vector3dVector(v * (1 + rng.normal(0, 5e-4, (len(v), 1))))
+    assert tight_curvature_fraction(noisy, 0.02) < 0.01
+    assert tight_curvature_fraction(o3d.geometry.TriangleMesh(), 0.02) == 0.0
