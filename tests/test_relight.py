@@ -418,3 +418,23 @@ def test_render_view_does_not_interpolate_normals_across_a_crease():
     assert mask[40].all()
     assert np.max(np.abs(row_sharp - face)) < 0.03 * face, row_sharp
     assert np.max(row_smooth) > 0.48                           # the interpolated strip: ~0.5 at its middle
+
+
+def test_render_command_writes_png_and_exr_and_refuses_a_bad_crease_angle(tmp_path, capsys):
+    """``appfusion render`` end to end on a saved result (a sphere with its own map): PNG and EXR
+    written; a negative --crease-deg is one clear error before anything is loaded or written."""
+    import open3d as o3d
+
+    from appfusion.cli import main
+
+    m = o3d.geometry.TriangleMesh.create_sphere(0.05, resolution=20)
+    m.compute_vertex_normals()
+    V, F = np.asarray(m.vertices), np.asarray(m.triangles)
+    r = ScanResult(V, np.asarray(m.vertex_normals), np.full((len(V), 3), 0.5), np.zeros(len(V), np.int32),
+                   [[0.1, 0.1, 0.1]], [0.2], mesh_vertices=V, mesh_faces=F, envmap=_const_env(8, 1.0))
+    path = r.save(tmp_path / "result.npz")
+    assert main(["render", str(path), "--size", "32x24", "--spp", "4", "--out", str(tmp_path / "r")]) == 0
+    assert (tmp_path / "r.png").stat().st_size > 0 and (tmp_path / "r.exr").stat().st_size > 0
+    assert main(["render", str(path), "--crease-deg", "-5", "--out", str(tmp_path / "bad")]) == 2
+    assert "--crease-deg must be in [0, 180]" in capsys.readouterr().err
+    assert not (tmp_path / "bad.png").exists()
