@@ -101,7 +101,7 @@ class GeometryConfig:
         vertices have a principal radius of curvature below ``refuse_fine_radius_voxels`` voxels
         (:func:`tight_curvature_fraction`), the re-fusion's voxel is scaled by it. A 3 mm TSDF rounds
         a rim or a dimple off, where the sun's glints sit; on the capsules (radius 4 cm, no vertex
-        under 29 mm) a finer voxel only adds noise. None: never.
+        under 34 mm) a finer voxel only adds noise. None: never.
     refuse_fine_radius_voxels, refuse_fine_fraction : float, float
         See ``refuse_fine_scale``.
     refuse_trunc_voxels : float or None

@@ -51,7 +51,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: automatic k with split_gain 3; 19: the captured map's blur variance and S read at the effective
 #: roughness; 20: the normal filter's stages run only while it converges; 21: refuse_voxel_scale in
 #: the configuration; 22: specular normal refinement, its normals saved with the RGB stage; 23: normals
-#: sharpened at creases, the re-fusion's truncation in the configuration)
+#: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
+#: configuration)
 CHECKPOINT_VERSION = 23
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")

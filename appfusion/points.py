@@ -799,12 +799,19 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
     return out
 
 
-def _plane_fits(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Least-squares planes through point sets X (M, k, 3): centroids (M, 3), unit normals (M, 3) and
-    RMS distances of the points from their plane (M,)."""
-    c = X.mean(1)
-    D = X - c[:, None]
-    ev, evec = np.linalg.eigh(np.einsum("mki,mkj->mij", D, D) / X.shape[1])
+def _plane_fits(X: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares planes through point sets X (M, k, 3), each point weighted by ``w`` (M, k) if
+    given: centroids (M, 3), unit normals (M, 3) and RMS distances of the points from their plane (M,)."""
+    if w is None:
+        c = X.mean(1)
+        D = X - c[:, None]
+        C = np.einsum("mki,mkj->mij", D, D) / X.shape[1]
+    else:
+        W = w.sum(1)
+        c = np.einsum("mk,mkc->mc", w, X) / W[:, None]
+        D = X - c[:, None]
+        C = np.einsum("mk,mki,mkj->mij", w, D, D) / W[:, None, None]
+    ev, evec = np.linalg.eigh(C)
     return c, evec[:, :, 0], np.sqrt(np.maximum(ev[:, 0], 0.0))
 
 
@@ -917,12 +924,9 @@ def sharpen_creases(positions: np.ndarray, normals: np.ndarray, radius: float, d
     X = P[nb]
     w = (np.abs(np.einsum("mkc,mc->mk", X - best_c[:, None], best_n)) < (2 * best_s + tau)[:, None]).astype(np.float64)
     w[:, 0] = 1.0
-    W = w.sum(1)
-    c = np.einsum("mk,mkc->mc", w, X) / W[:, None]
-    D = X - c[:, None]
-    ev, evec = np.linalg.eigh(np.einsum("mk,mki,mkj->mij", w, D, D) / W[:, None, None])
-    local = W >= k // 2
-    best_n[local] = evec[local, :, 0]
+    _, n_refit, _ = _plane_fits(X, w)
+    local = w.sum(1) >= k // 2
+    best_n[local] = n_refit[local]
     best_n *= np.sign(np.einsum("mc,mc->m", best_n, out[cand]))[:, None]
     best_n[own] = n_centred[own]
     crease = straddle | own
