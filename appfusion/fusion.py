@@ -122,15 +122,35 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def anchor_information(normal, w_in: float, w_n: float) -> np.ndarray:
+def anchor_information(normal, w_in: float, w_n: float, sight=None, floor: float = 1e-3) -> np.ndarray:
     """(3, 3) weight (information) matrix of an anchor's point-to-point term: ``w_in`` within the
     support plane and ``w_n`` along its unit ``normal`` (``w_in I + (w_n - w_in) n n^T``); ``w_in I``
-    without a normal."""
+    without a normal.
+
+    ``sight`` (3,), optional: the line of sight from the camera to the anchor, in the same frame.
+    The in-plane error along the sight's projection on the plane then weighs ``w_in sin^2(e)``
+    (``e`` the sight's elevation above the plane, the weight at least ``floor w_in``); the one across
+    it keeps ``w_in``. A circle seen at elevation ``e`` images as an ellipse ``sin(e)`` as thin as it
+    is long, so a pixel's error across the ellipse moves its centre ``1 / sin(e)`` times as far
+    along the line of sight on the plane (the same argument as :func:`appfusion.markers.view_weight`;
+    beyond the paper). On the ``--quick`` bench's 320 x 240 session a circle seen at 8 degrees was
+    3.7 mm off along the sight and 0.1 mm across it.
+    """
     if normal is None:
         return np.eye(3) * w_in
     n = np.asarray(normal, float)
     n = n / max(float(np.linalg.norm(n)), 1e-12)
-    return np.eye(3) * w_in + (w_n - w_in) * np.outer(n, n)
+    M = np.eye(3) * w_in + (w_n - w_in) * np.outer(n, n)
+    if sight is not None:
+        v = np.asarray(sight, float)
+        v = v / max(float(np.linalg.norm(v)), 1e-12)
+        s2 = float(v @ n) ** 2                                    # sin^2 of the elevation
+        t = v - (v @ n) * n                                       # the sight's direction on the plane
+        tn = float(np.linalg.norm(t))
+        if tn > 1e-9:
+            t /= tn
+            M -= w_in * (1.0 - max(s2, floor)) * np.outer(t, t)
+    return M
 
 
 def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -401,6 +421,13 @@ class FusionConfig:
         the cap's top no longer bulged (+11 um against +47 at 55-90 degrees of elevation), and the
         relit error of the same geometry over four point samplings was 0.051-0.065 against
         0.079-0.082; 100 gave 0.047-0.065. Scaled with the pixel footprint like ``anchor_weight``.
+    anchor_sight_weighting : bool
+        Weigh an anchor's in-plane error along its line of sight by ``sin^2`` of the sight's
+        elevation above the plane (:func:`anchor_information`): a circle seen at a grazing angle is
+        known across the sight, not along it. Also used by :meth:`GeometryPass.refuse`'s
+        :class:`~appfusion.geometry_pass.PoseRefiner`. Off by default: it made the demo's poses
+        worse (ATE 0.51 -> 0.78 mm with a looser circle test) and lost frames of the ``--quick``
+        bench's coarse scan before circles were checked for size (docs/geometry-pass.md).
     refine_raycast : bool
         Refine ray-cast hits on the trilinear TSDF (see :meth:`TSDFFusion.raycast`).
     omp_threads : int or None
@@ -459,6 +486,7 @@ class FusionConfig:
     normal_smooth_px: float = 1.0
     anchor_weight: float = 3.0
     anchor_normal_weight: float = 30.0
+    anchor_sight_weighting: bool = False
     refine_raycast: bool = True
     omp_threads: int | None = 1
     max_jump_m: float = 0.08
@@ -718,13 +746,15 @@ class TSDFFusion:
             return out
         return out, vertex_normals(out, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
 
-    def _anchor_information(self, anchors) -> list:
+    def _anchor_information(self, anchors, rotation: np.ndarray | None = None) -> list:
         """Per anchor, the 3 x 3 weight (information) matrix of its point-to-point term.
 
         ``anchor_weight * I`` without normals; with a normal ``n`` (the support plane's),
         ``anchor_weight (I - n n^T) + anchor_normal_weight n n^T``: a circle centre found on the
         depth's plane (:func:`appfusion.markers.circle_on_plane`) is far better known across the
-        plane than within it (see :class:`FusionConfig`).
+        plane than within it (see :class:`FusionConfig`). With ``anchor_sight_weighting`` and the
+        source-to-target ``rotation``, the in-plane error along each anchor's line of sight weighs
+        ``sin^2`` of its elevation (:func:`anchor_information`).
         """
         if anchors is None or not len(anchors[0]):
             return []
@@ -732,6 +762,9 @@ class TSDFFusion:
         if len(anchors) < 3 or anchors[2] is None:
             return [anchor_information(None, self.anchor_weight, self.anchor_normal_weight)] * k
         n = np.broadcast_to(np.asarray(anchors[2], float).reshape(-1, 3), (k, 3))
+        if self.config.anchor_sight_weighting and rotation is not None:
+            sight = np.asarray(anchors[0], float) @ np.asarray(rotation, float).T      # target frame
+            return [anchor_information(v, self.anchor_weight, self.anchor_normal_weight, s) for v, s in zip(n, sight)]
         return [anchor_information(v, self.anchor_weight, self.anchor_normal_weight) for v in n]
 
     def icp(self, src: np.ndarray, tgt_depth: np.ndarray, tgt_normals: np.ndarray, init: np.ndarray,
@@ -774,7 +807,7 @@ class TSDFFusion:
         cfg = self.config
         K = self.K_trk
         T = init.copy()
-        anchor_info = self._anchor_information(anchors)
+        anchor_info = self._anchor_information(anchors, T[:3, :3])
         src_normals = vertex_normals(src, K, max_jump=4 * cfg.voxel_size, smooth_px=cfg.normal_smooth_px)
         levels = []
         for lev in range(len(cfg.track_iterations)):

@@ -484,7 +484,8 @@ class GeometryPass:
         if len(old.triangles) == 0:
             return 0
         refiner = PoseRefiner(np.asarray(old.vertices), np.asarray(old.triangles), iterations=4,
-                              depth_weight=depth_weight, anchor_sigma=anchor_sigma)
+                              depth_weight=depth_weight, anchor_sigma=anchor_sigma,
+                              sight_weighting=self.fusion.config.anchor_sight_weighting)
         by_index = {s.index: s for s in self.states if s.pose_marker is not None and s.ok}
         fc = self.fusion.config
         if self.refuse_scale is None:                            # decided once, in the first round
@@ -791,11 +792,15 @@ class PoseRefiner:
     anchor_sigma : (float, float)
         Sigmas of an anchor (a circle centre, :meth:`refine`) within and across the support plane,
         metres.
+    sight_weighting : bool
+        The in-plane sigma along an anchor's line of sight grows as ``1 / sin`` of its elevation
+        above the plane (:func:`appfusion.fusion.anchor_information`).
     """
 
     def __init__(self, vertices, faces, step: int = 2, iterations: int = 3, max_dist: float = 0.004,
                  sigma_depth: float = 0.0007, sigma_rot: float = np.radians(0.2), sigma_trans: float = 0.0015,
-                 min_pairs: int = 200, depth_weight: float = 1.0, anchor_sigma: tuple[float, float] = (3e-4, 6e-5)):
+                 min_pairs: int = 200, depth_weight: float = 1.0, anchor_sigma: tuple[float, float] = (3e-4, 6e-5),
+                 sight_weighting: bool = False):
         V = np.asarray(vertices, dtype=np.float32)
         F = np.asarray(faces)
         if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(V) == 0 or len(F) == 0:
@@ -814,6 +819,7 @@ class PoseRefiner:
             raise AppFusionError(f"PoseRefiner: depth_weight and anchor_sigma must be positive, got "
                                  f"{depth_weight} and {anchor_sigma}")
         self.anchor_sigma = (float(anchor_sigma[0]), float(anchor_sigma[1]))
+        self.sight_weighting = bool(sight_weighting)
 
     def refine(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
                anchors: tuple | None = None) -> tuple[np.ndarray, int]:
@@ -848,7 +854,7 @@ class PoseRefiner:
         Pc = np.stack([(u[ok] - intrinsics.cx) / intrinsics.fx * z, (v[ok] - intrinsics.cy) / intrinsics.fy * z, z], 1)
         Pw = Pc @ T[:3, :3].T + T[:3, 3]
         Pc = Pc[np.all((Pw > self.lo) & (Pw < self.hi), axis=1)]
-        anc = self._anchor_terms(anchors)
+        anc = self._anchor_terms(anchors, T[:3, :3])
         if len(Pc) < self.min_pairs and anc is None:
             return T.copy(), 0
         total = np.zeros(6)
@@ -875,9 +881,9 @@ class PoseRefiner:
             elif anc is None:
                 return np.asarray(pose, dtype=np.float64).copy(), 0
             if anc is not None:
-                c_cam, C_w, W = anc
+                c_cam, C_w, Ws = anc
                 p = c_cam @ T[:3, :3].T + T[:3, 3]
-                for pk, Ck in zip(p, C_w):                                  # d p / d (omega, tau) = [-[p]x, I]
+                for pk, Ck, W in zip(p, C_w, Ws):                           # d p / d (omega, tau) = [-[p]x, I]
                     J = np.concatenate([-_skew(pk), np.eye(3)], axis=1)
                     H = H + J.T @ W @ J
                     g = g + J.T @ W @ (Ck - pk)
@@ -886,8 +892,9 @@ class PoseRefiner:
             T = _twist_to_pose(xi) @ T
         return T, used
 
-    def _anchor_terms(self, anchors):
-        """(centres_cam, centres_world, W) of :meth:`refine`'s anchors, or None."""
+    def _anchor_terms(self, anchors, rotation: np.ndarray):
+        """(centres_cam, centres_world, [W per anchor]) of :meth:`refine`'s anchors, or None;
+        ``rotation``: the initial pose's, which turns each centre's line of sight into the world."""
         if anchors is None:
             return None
         c_cam = np.asarray(anchors[0], dtype=np.float64).reshape(-1, 3)
@@ -902,4 +909,9 @@ class PoseRefiner:
         nrm = None if nrm is None else np.asarray(nrm, dtype=np.float64)
         if nrm is not None and (not np.isfinite(nrm).all() or np.linalg.norm(nrm) < 1e-9):
             nrm = None
-        return c_cam[ok], C_w[ok], anchor_information(nrm, s_in ** -2, s_n ** -2)
+        c_cam, C_w = c_cam[ok], C_w[ok]
+        if nrm is not None and self.sight_weighting:
+            Ws = [anchor_information(nrm, s_in ** -2, s_n ** -2, sight) for sight in c_cam @ rotation.T]
+        else:
+            Ws = [anchor_information(nrm, s_in ** -2, s_n ** -2)] * len(c_cam)
+        return c_cam, C_w, Ws

@@ -649,6 +649,56 @@ def test_anchor_error_across_the_support_plane_weighs_anchor_normal_weight():
     assert heavy[2] > 2 * plain[2]
 
 
+def test_anchor_information_along_a_grazing_line_of_sight():
+    """With a line of sight, an anchor's in-plane error along the sight's projection on the plane
+    weighs ``w_in sin^2(e)`` (e: the sight's elevation above the plane), across it ``w_in``, along
+    the normal ``w_n``; a sight along the normal changes nothing; the weight has a floor."""
+    from appfusion.fusion import anchor_information
+
+    n = np.array([0.0, 0.0, 1.0])
+    e = np.radians(10.0)
+    sight = np.array([np.cos(e), 0.0, -np.sin(e)]) * 0.8          # camera above, looking down at 10 deg
+    M = anchor_information(n, 3.0, 30.0, sight)
+    np.testing.assert_allclose(M, M.T)
+    np.testing.assert_allclose(M @ [1.0, 0, 0], [3.0 * np.sin(e) ** 2, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(M @ [0, 1.0, 0], [0, 3.0, 0], atol=1e-12)
+    np.testing.assert_allclose(M @ n, 30.0 * n, atol=1e-12)
+    np.testing.assert_allclose(anchor_information(n, 3.0, 30.0, -n), anchor_information(n, 3.0, 30.0), atol=1e-12)
+    flat = anchor_information(n, 3.0, 30.0, [0.0, 1.0, 0.0], floor=1e-3)   # in the plane: the floor
+    assert flat[1, 1] == pytest.approx(3e-3) and flat[0, 0] == pytest.approx(3.0)
+    assert np.allclose(anchor_information(None, 3.0, 30.0, sight), 3.0 * np.eye(3))
+
+
+def test_pose_refiner_trusts_a_grazing_circle_across_its_line_of_sight():
+    """A circle seen at a grazing angle is off along its line of sight on the plane (its ellipse is thin that way):
+    with sight weighting the refined pose keeps the other circles where they are; without, the one
+    bad centre drags them."""
+    from appfusion.geometry_pass import PoseRefiner
+
+    c = np.array([0.0, 0.0, 0.05])
+    m = o3d.geometry.TriangleMesh.create_sphere(radius=0.05, resolution=40)
+    m.translate(c)
+    V, F = np.asarray(m.vertices), np.asarray(m.triangles)
+    K = Intrinsics(320, 240, 290.0, 290.0, 159.5, 119.5)
+    T, depth = _mesh_depth(V, F, K, np.array([0.45, -0.05, 0.12]), c)          # a low view (~13 deg)
+    C = np.array([[0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0], [0.15, -0.15, 0.0]])
+    c_cam = transform_points(invert_pose(T), C)
+    far = int(np.argmax(c_cam[:, 2]))                                            # the most grazing one
+    along = C[far] - T[:3, 3]
+    along[2] = 0.0                                                               # its sight, on the plane
+    bad = c_cam.copy()
+    bad[far] += T[:3, :3].T @ (0.004 * along / np.linalg.norm(along))           # 4 mm that way (camera frame)
+    others = np.arange(4) != far
+
+    def others_shift(weighting):
+        ref = PoseRefiner(V, F, step=1, iterations=4, depth_weight=0.1, sight_weighting=weighting)
+        P, _ = ref.refine(depth, K, T, anchors=(bad, C, [0, 0, 1.0]))
+        return np.abs(transform_points(P, c_cam[others]) - C[others]).max()
+
+    plain, weighted = others_shift(False), others_shift(True)
+    assert weighted < 0.2 * plain and plain > 2e-4, (plain, weighted)
+
+
 def _icosphere_mesh(radius, level, centre=(0.0, 0.0, 0.0)):
     m = o3d.geometry.TriangleMesh.create_icosahedron(1.0).subdivide_midpoint(level)
     v = np.asarray(m.vertices)
