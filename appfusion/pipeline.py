@@ -19,6 +19,7 @@ last finished stage when run again with the same output folder.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import threading
@@ -1665,10 +1666,20 @@ class _Track:
 
 
 class _MarkerPose:
-    """Camera pose from the four circles of one frame (rigid fit of the detected centres to the printed
+    """Camera pose from the circles of one frame (rigid fit of the detected centres to the printed
     layout, marker frame). Needs the layout (``extra.markers.side_m``) and, to be unambiguous, the key
     circle (``key_radius_m``); without a key circle the pose is only defined up to a quarter turn and
-    this tracker refuses."""
+    this tracker refuses.
+
+    Four or three circles fix the pose on their own; two fix it with the support plane's normal, once
+    they are numbered (:meth:`_two`: by the key circle, or by the pose of the last frame tracked, kept
+    in :attr:`last`). Frames are expected in recording order, as a pass plays them."""
+
+    #: the last frame's pose numbers two circles when one numbering puts the camera within this
+    #: distance of it (metres, a radian of turn counted as 0.5 m) and every other numbering at least
+    #: twice as far and beyond it (another numbering turns the camera by 90 or 180 degrees about the
+    #: plane's normal: 0.8 m or more)
+    TWO_CIRCLE_PRIOR_M = 0.25
 
     def __init__(self, meta: dict):
         from .markers import marker_config_from_meta
@@ -1678,24 +1689,94 @@ class _MarkerPose:
             raise PassMissingError("the RGB pass has no depth-tracked poses, and marker poses need the printed "
                                    "layout with its key circle (session meta extra.markers side_m, key_radius_m)")
         self.layout = self.cfg.centres()
+        self.last: np.ndarray | None = None
 
     def track(self, frame: Frame) -> _Track:
-        from .fusion import kabsch
         from .markers import detect_markers
 
         return self.track_detection(detect_markers(frame, self.cfg))
 
     def track_detection(self, det) -> _Track:
-        """:meth:`track` from a :class:`~appfusion.markers.MarkerDetection` (four or three circles)."""
+        """:meth:`track` from a :class:`~appfusion.markers.MarkerDetection` (four, three or two
+        circles); a pose found is kept as :attr:`last`."""
         from .fusion import kabsch
 
         if det.complete:
             T = kabsch(det.centers, self.layout)  # depth camera -> marker frame = camera-to-world pose
-            return _Track(T, "ok", 4)
-        idx = self._three(det)
-        if idx is None:
-            return _Track(None, "lost", det.n)
-        return _Track(kabsch(det.centers, self.layout[idx]), "ok", 3)
+            tr = _Track(T, "ok", 4)
+        elif det.n == 3:
+            idx = self._three(det)
+            tr = _Track(None, "lost", 3) if idx is None else _Track(kabsch(det.centers, self.layout[idx]), "ok", 3)
+        else:
+            tr = _Track(self._two(det), "ok", det.n)
+            if tr.pose is None:
+                tr = _Track(None, "lost", det.n)
+        if tr.pose is not None:
+            self.last = tr.pose
+        return tr
+
+    def _two(self, det) -> np.ndarray | None:
+        """The pose from two circles and the support plane's normal (beyond the paper), or None.
+
+        The rotation takes the normal to the marker frame's +z and the line between the two centres
+        (projected on the plane) to the line between the layout's circles; the translation matches
+        their midpoints. Each numbering of the pair consistent with the layout (their distance within
+        1.5 cm of the side or the diagonal; a detection with the key's radius is circle 1 and only it)
+        gives a pose. One numbering alone (the key circle and the one across the diagonal) is taken;
+        else the one whose pose is nearest :attr:`last` (translation plus 0.5 m per radian of
+        rotation), when it is within :attr:`TWO_CIRCLE_PRIOR_M` and every other numbering at least
+        twice as far and beyond it.
+        On the demo session 30 of the RGB pass's 200 frames see two circles only.
+        """
+        if det.n != 2 or det.normal is None:
+            return None
+        P = np.asarray(det.centers, float)
+        n = np.asarray(det.normal, float)
+        n = n / np.linalg.norm(n)
+        if float(n @ P.mean(axis=0)) > 0:                       # the normal must face the camera
+            n = -n
+        dist = float(np.linalg.norm(P[1] - P[0]))
+        r = np.asarray(det.radii, float)
+        key_r, r0 = float(self.cfg.key_radius_m), float(self.cfg.radius_m)
+        is_key = np.abs(r - key_r) < 0.5 * abs(key_r - r0)
+        if is_key.all():
+            return None
+        u = P[1] - P[0]
+        u -= (u @ n) * n
+        if np.linalg.norm(u) < 1e-6:
+            return None
+        u /= np.linalg.norm(u)
+        Bc = np.stack([u, np.cross(n, u), n], 1)
+        z = np.array([0.0, 0.0, 1.0])
+        poses = []
+        for i, j in itertools.permutations(range(4), 2):
+            if (i == 0) != bool(is_key[0]) or (j == 0) != bool(is_key[1]):
+                continue
+            v = self.layout[j] - self.layout[i]
+            if abs(float(np.linalg.norm(v)) - dist) > 0.015:
+                continue
+            v = np.array([v[0], v[1], 0.0]) / np.linalg.norm(v[:2])
+            R = np.stack([v, np.cross(z, v), z], 1) @ Bc.T
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = 0.5 * (self.layout[i] + self.layout[j]) - R @ P.mean(axis=0)
+            poses.append(T)
+        if len(poses) == 1 and is_key.any():
+            return poses[0]
+        if not poses or self.last is None:
+            return None
+        def gap(T):                                           # metres, a radian counted as 0.5 m
+            c = (np.trace(T[:3, :3].T @ self.last[:3, :3]) - 1.0) / 2.0
+            return float(np.linalg.norm(T[:3, 3] - self.last[:3, 3]) + 0.5 * np.arccos(np.clip(c, -1.0, 1.0)))
+
+        d = np.array([gap(T) for T in poses])
+        order = np.argsort(d)
+        best = d[order[0]]
+        if best > self.TWO_CIRCLE_PRIOR_M:
+            return None
+        if len(d) > 1 and (d[order[1]] < 2 * best or d[order[1]] <= self.TWO_CIRCLE_PRIOR_M):
+            return None
+        return poses[order[0]]
 
     def _three(self, det) -> np.ndarray | None:
         """Circle numbers (0-based) of three detected circles, or None.

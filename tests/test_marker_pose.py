@@ -48,13 +48,59 @@ def test_any_three_circles_give_the_pose(seed):
         assert tr.state == "ok" and np.linalg.norm(tr.pose[:3, 3] - T[:3, 3]) < 3e-3
 
 
+def _two_detection(mp, T, keep, rng):
+    Ti = invert_pose(T)
+    layout_cam = mp.layout @ Ti[:3, :3].T + Ti[:3, 3]
+    normal = Ti[:3, :3] @ np.array([0, 0, 1.0])
+    radii = np.array([0.035, 0.025, 0.025, 0.025])
+    return MarkerDetection(layout_cam[keep] + rng.normal(0, 3e-4, (2, 3)), radii[keep], np.zeros((2, 2)),
+                           normal * rng.choice([-1.0, 1.0]), 0.0, False, "rgb")
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_two_circles_and_the_plane_give_the_pose_once_numbered(seed):
+    """Two circles and the support plane's normal fix the pose once the circles are numbered: by the
+    key circle with the one across the diagonal alone, else by the last frame's pose (the nearest
+    numbering, when every other one puts the camera far from it). A pair that no numbering makes
+    unambiguous is lost."""
+    rng = np.random.default_rng(seed)
+    T = _pose(seed)
+    step = np.eye(4)
+    step[:3, 3] = rng.normal(0, 0.04, 3)                 # the last frame: 4-7 cm away
+    for keep in itertools.permutations(range(4), 2):
+        keep = list(keep)
+        mp = _MarkerPose(META)
+        tr = mp.track_detection(_two_detection(mp, T, keep, rng))
+        if sorted(keep) == [0, 2]:                       # key + diagonal: no prior needed
+            assert tr.state == "ok" and tr.markers_visible == 2
+            assert np.linalg.norm(tr.pose[:3, 3] - T[:3, 3]) < 3e-3
+            assert np.allclose(tr.pose[:3, :3], T[:3, :3], atol=3e-3)
+        else:
+            assert tr.pose is None and tr.state == "lost"
+        mp.last = T @ step                               # the last frame tracked, nearby
+        tr = mp.track_detection(_two_detection(mp, T, keep, rng))
+        assert tr.state == "ok", keep
+        assert np.linalg.norm(tr.pose[:3, 3] - T[:3, 3]) < 3e-3
+        assert np.allclose(tr.pose[:3, :3], T[:3, :3], atol=3e-3)
+        assert mp.last is tr.pose
+        if sorted(keep) != [0, 2]:
+            far = T.copy()
+            far[:3, 3] += [0.3, 0.0, 0.0]                    # a last pose 30 cm away numbers nothing
+            mp.last = far
+            assert mp.track_detection(_two_detection(mp, T, keep, rng)).pose is None
+
+
 def test_three_circles_not_forming_the_layout_are_refused():
     mp = _MarkerPose(META)
     pts = np.array([[0.0, 0, 0.7], [0.3, 0, 0.7], [0.0, 0.2, 0.7]])   # a 0.3 x 0.2 right triangle
     det = MarkerDetection(pts, np.full(3, 0.025), np.zeros((3, 2)), np.array([0, 0, -1.0]), 0.7, False, "rgb")
     assert mp._three(det) is None
     two = MarkerDetection(pts[:2], np.full(2, 0.025), np.zeros((2, 2)), np.array([0, 0, -1.0]), 0.7, False, "rgb")
-    assert mp.track_detection(two).pose is None
+    assert mp.track_detection(two).pose is None                      # two circles, no key, no last pose
+    mp.last = np.eye(4)
+    short = MarkerDetection(pts[[0, 2]], np.full(2, 0.025), np.zeros((2, 2)), np.array([0, 0, -1.0]), 0.7, False,
+                            "rgb")
+    assert mp.track_detection(short).pose is None                    # 0.2 m apart: no side, no diagonal
 
 
 def test_a_circle_detected_twice_keeps_the_frame_anchored():
