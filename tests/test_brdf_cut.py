@@ -313,3 +313,35 @@ def test_rim_leaves_stay_out_of_the_fits(two_material_scan):
         BRDFCut(P, ip.cut.normals, rim=rim[:10])
     with pytest.raises(AppFusionError, match="rim must be one bool per point"):
         BRDFCut(P, ip.cut.normals, rim=rim.astype(int))
+
+
+def test_a_cluster_without_interior_leaves_fits_its_pure_leaves(two_material_scan, monkeypatch):
+    """When a cluster's interior leaves hold too little of its weight (a band-shaped material in a
+    coarse tree), its Ward fit takes the leaves whose points all carry its label, not every leaf it
+    touches: the boundary leaves mix the other material's lobe in."""
+    from appfusion.ward_fit import WardFitter
+
+    sc, ip, truth, _ = two_material_scan
+    cut = ip.cut
+    lab = truth.astype(np.int64)
+    seen = []
+    fit = WardFitter.fit
+
+    def spy(self, hb, *a, **k):
+        seen.append(float(hb.total_weight()[0]))
+        return fit(self, hb, *a, **k)
+
+    monkeypatch.setattr(WardFitter, "fit", spy)
+    monkeypatch.setattr(cut, "interior_k", cut.tree.n_leaves)        # no leaf is interior now
+    assert not cut._interior_leaves(lab).any()
+    infos = cut.fit_clusters(lab)
+    pure, inside = cut._pure_leaves(lab)
+    assert pure.any() and not np.array_equal(pure, np.ones_like(pure))
+    F = np.zeros((2, cut.tree.n_leaves))
+    np.add.at(F, (lab, cut.tree.point_leaf), cut.areas)
+    Fn = F / np.bincount(cut.tree.point_leaf, cut.areas, cut.tree.n_leaves)[None]
+    for c in infos:
+        want = cut.leaves.merge(Fn * inside[None])[c.label].total_weight()[0]
+        assert seen[c.label] == pytest.approx(want)                    # the pure leaves' data
+        assert seen[c.label] < c.hbsab.total_weight()[0]
+        assert abs(c.fit.alpha / sc.materials[c.label].alpha - 1) <= 0.05, c.fit
