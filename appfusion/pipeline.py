@@ -1725,8 +1725,8 @@ class _MarkerPose:
         gives a pose. One numbering alone (the key circle and the one across the diagonal) is taken;
         else the one whose pose is nearest :attr:`last` (translation plus 0.5 m per radian of
         rotation), when it is within :attr:`TWO_CIRCLE_PRIOR_M` and every other numbering at least
-        twice as far and beyond it.
-        On the demo session 30 of the RGB pass's 200 frames see two circles only.
+        twice as far and beyond it. On the demo session 30 of the RGB pass's 200 frames see two
+        circles only.
         """
         if det.n != 2 or det.normal is None:
             return None
@@ -1765,6 +1765,7 @@ class _MarkerPose:
             return poses[0]
         if not poses or self.last is None:
             return None
+
         def gap(T):                                           # metres, a radian counted as 0.5 m
             c = (np.trace(T[:3, :3].T @ self.last[:3, :3]) - 1.0) / 2.0
             return float(np.linalg.norm(T[:3, 3] - self.last[:3, 3]) + 0.5 * np.arccos(np.clip(c, -1.0, 1.0)))
