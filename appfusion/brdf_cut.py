@@ -885,15 +885,15 @@ class BRDFCut:
         mapping[r] = c
         return mapping[labels].astype(np.int32)
 
-    def _pure_leaves(self, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(n_leaves,) bool twice: leaves whose points share one label, and those of them that hold
-        no point of the surface's open boundary (``rim``)."""
+    def _pure_leaves(self, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per leaf (n_leaves,): the smallest label of its points, whether they all share it (pure),
+        and whether it is pure and holds no point of the surface's open boundary (``rim``)."""
         t = self.tree
         lo = np.minimum.reduceat(labels[t.order], t.leaf_start[:-1])
         hi = np.maximum.reduceat(labels[t.order], t.leaf_start[:-1])
         pure = lo == hi
         rim = self._rim_leaf if self._rim_leaf is not None else np.zeros(t.n_leaves, bool)
-        return pure, pure & ~rim
+        return lo, pure, pure & ~rim
 
     def _interior_leaves(self, labels: np.ndarray) -> np.ndarray:
         """(n_leaves,) bool: leaves whose points share one label, as do their ``interior_k`` nearest
@@ -901,8 +901,7 @@ class BRDFCut:
         boundary (``rim``). Leaves at a material boundary mix two lobes; the clusters' Ward fits leave
         them out (labels are unaffected)."""
         t = self.tree
-        lo = np.minimum.reduceat(labels[t.order], t.leaf_start[:-1])
-        pure, inside = self._pure_leaves(labels)
+        lo, pure, inside = self._pure_leaves(labels)
         if self.interior_k <= 0 or t.n_leaves <= 1:
             return inside
         cent = self._leaf_feat_sum / self._leaf_count[:, None]
@@ -921,7 +920,7 @@ class BRDFCut:
         merged = self.leaves.merge(Fn)
         rungs = []
         if fit:
-            pure, inside = self._pure_leaves(labels)
+            _, pure, inside = self._pure_leaves(labels)
             rungs = [self.leaves.merge(Fn * m[None]) for m in (self._interior_leaves(labels), inside, pure)]
         out = []
         counts = np.bincount(labels, minlength=k)

@@ -1708,9 +1708,8 @@ class _MarkerPose:
             idx = self._three(det)
             tr = _Track(None, "lost", 3) if idx is None else _Track(kabsch(det.centers, self.layout[idx]), "ok", 3)
         else:
-            tr = _Track(self._two(det), "ok", det.n)
-            if tr.pose is None:
-                tr = _Track(None, "lost", det.n)
+            T = self._two(det)
+            tr = _Track(T, "lost" if T is None else "ok", det.n)
         if tr.pose is not None:
             self.last = tr.pose
         return tr
@@ -1728,6 +1727,8 @@ class _MarkerPose:
         twice as far and beyond it. On the demo session 30 of the RGB pass's 200 frames see two
         circles only.
         """
+        from .fusion import rotation_angle_deg
+
         if det.n != 2 or det.normal is None:
             return None
         P = np.asarray(det.centers, float)
@@ -1736,9 +1737,7 @@ class _MarkerPose:
         if float(n @ P.mean(axis=0)) > 0:                       # the normal must face the camera
             n = -n
         dist = float(np.linalg.norm(P[1] - P[0]))
-        r = np.asarray(det.radii, float)
-        key_r, r0 = float(self.cfg.key_radius_m), float(self.cfg.radius_m)
-        is_key = np.abs(r - key_r) < 0.5 * abs(key_r - r0)
+        is_key = self._is_key(det)
         if is_key.all():
             return None
         u = P[1] - P[0]
@@ -1767,8 +1766,8 @@ class _MarkerPose:
             return None
 
         def gap(T):                                           # metres, a radian counted as 0.5 m
-            c = (np.trace(T[:3, :3].T @ self.last[:3, :3]) - 1.0) / 2.0
-            return float(np.linalg.norm(T[:3, 3] - self.last[:3, 3]) + 0.5 * np.arccos(np.clip(c, -1.0, 1.0)))
+            turn = np.radians(rotation_angle_deg(T[:3, :3].T @ self.last[:3, :3]))
+            return float(np.linalg.norm(T[:3, 3] - self.last[:3, 3]) + 0.5 * turn)
 
         d = np.array([gap(T) for T in poses])
         order = np.argsort(d)
@@ -1778,6 +1777,11 @@ class _MarkerPose:
         if len(d) > 1 and (d[order[1]] < 2 * best or d[order[1]] <= self.TWO_CIRCLE_PRIOR_M):
             return None
         return poses[order[0]]
+
+    def _is_key(self, det) -> np.ndarray:
+        """(K,) bool: detections whose radius is the key circle's (nearer it than the others')."""
+        key_r, r0 = float(self.cfg.key_radius_m), float(self.cfg.radius_m)
+        return np.abs(np.asarray(det.radii, float) - key_r) < 0.5 * abs(key_r - r0)
 
     def _three(self, det) -> np.ndarray | None:
         """Circle numbers (0-based) of three detected circles, or None.
@@ -1801,9 +1805,7 @@ class _MarkerPose:
         # order the legs: p = c - 1, q = c + 1 satisfy ((p - c) x (q - c)) . n > 0
         if np.dot(np.cross(P[a] - P[c], P[b] - P[c]), det.normal) < 0:
             a, b = b, a
-        r = np.asarray(det.radii, float)
-        key_r, r0 = float(self.cfg.key_radius_m), float(self.cfg.radius_m)
-        is_key = np.abs(r - key_r) < 0.5 * abs(key_r - r0)
+        is_key = self._is_key(det)
         if is_key.sum() > 1:
             return None
         if not is_key.any():

@@ -335,7 +335,7 @@ def test_a_cluster_without_interior_leaves_fits_its_pure_leaves(two_material_sca
     monkeypatch.setattr(cut, "interior_k", cut.tree.n_leaves)        # no leaf is interior now
     assert not cut._interior_leaves(lab).any()
     infos = cut.fit_clusters(lab)
-    pure, inside = cut._pure_leaves(lab)
+    _, pure, inside = cut._pure_leaves(lab)
     assert pure.any() and not np.array_equal(pure, np.ones_like(pure))
     F = np.zeros((2, cut.tree.n_leaves))
     np.add.at(F, (lab, cut.tree.point_leaf), cut.areas)
