@@ -677,11 +677,12 @@ class RGBPass:
             L = np.where(finite[:, None], L, np.float32(0.0))
         Lmax = np.maximum(np.maximum(L[:, 0], L[:, 1]), L[:, 2])
         sat = sat | (Lmax >= self.saturated)
-        wo = np.asarray(C, dtype=np.float32) - self.positions[p]
+        # np.take rather than fancy indexing: 2-4x faster on (N, 3) rows
+        wo = np.asarray(C, dtype=np.float32) - self.positions.take(p, axis=0)
         dist = np.sqrt(np.einsum("ij,ij->i", wo, wo))
         near = ~(dist > 1e-6)                                 # camera at the point: no view direction
         wo *= (np.float32(1.0) / np.where(near, np.float32(1.0), dist))[:, None]
-        nrm = self.normals[p]
+        nrm = self.normals.take(p, axis=0)
         cos_o = np.einsum("ij,ij->i", nrm, wo)
         dark = Lmax < self.dark
         graz = (cos_o < self.min_cos) | near
@@ -696,7 +697,7 @@ class RGBPass:
         if len(k) == 0:
             return 0
         if len(k) < len(p):
-            p, L, wo, nrm = p[k], L[k], wo[k], nrm[k]
+            p, L, wo, nrm = (x.take(k, axis=0) for x in (p, L, wo, nrm))
         sp = self._spec_point[p]
         seed = self.frames * 7919 + st["samples"]
         if sp.all():
@@ -730,8 +731,8 @@ class RGBPass:
         the near field is on."""
         S = self.tables.S(nrm, wo, self._map_alpha(alpha))
         if self.near_field is not None:
-            dS = self.near_field.delta_S(self.positions[p], nrm, wo, alpha, n_samples=self.near_field_samples,
-                                         seed=seed)
+            pos = self.positions.take(p, axis=0)
+            dS = self.near_field.delta_S(pos, nrm, wo, alpha, n_samples=self.near_field_samples, seed=seed)
             S = np.maximum(S + dS, 0.0).astype(np.float32)
         return S
 
@@ -765,7 +766,7 @@ class RGBPass:
     def _accumulate(self, p: np.ndarray, L: np.ndarray, S: np.ndarray, Sc: list = ()) -> None:
         """Histogram, bin-mean and Eq. 8 sum updates for distinct internal points ``p``; ``Sc`` as
         :meth:`_compare_S` returns it, for the same samples."""
-        Dp = self.D[p]
+        Dp = self.D.take(p, axis=0)
         # rho_d histograms: log(L / D) per channel into the point's bins, plus the running mean of the
         # samples' position inside their bin (uint8, stochastic rounding keeps it unbiased)
         x = (np.log(np.maximum(L, np.float32(1e-12)) / Dp) - np.float32(self.log_lo)) * np.float32(1.0 / self.log_width)
@@ -801,7 +802,8 @@ class RGBPass:
             self.sum_w[p] += w
             np.multiply(w[:, None], L, out=u[:, 6])
             np.multiply(w[:, None], S, out=u[:, 7])
-            self._sums[p] += u
+            u += self._sums.take(p, axis=0)                  # distinct p: gather, add, scatter
+            self._sums[p] = u
         else:
             self._sums[p, :6] += u
         for m, (need, Sm) in enumerate(Sc):
