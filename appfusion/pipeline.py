@@ -97,6 +97,10 @@ class ScanConfig:
     diffuse_tau : float or None
         rho_d by the least squares of Eq. 5 with each sample weighted by ``1 / (1 + (S / (tau D))^2)``
         (diffuse-dominated views count most, as Eq. 6's minimum intends); None: unweighted.
+    rgb_sampling : {"nearest", "bilinear"}
+        How an RGB sample reads the image where its point projects (the nearest pixel, or bilinear
+        between the four around it; :class:`appfusion.rgb_pass.RGBPass`). Bilinear helped the demo's
+        rho_d a little and cost the 320 x 240 small scan its labels (``docs/rgb-pass.md`` §6).
     refine_poses : bool
         Re-register each depth frame of the IR pass (and of a combined IR + RGB pass) to the final mesh
         before its samples are taken (:class:`appfusion.geometry_pass.PoseRefiner`; beyond the
@@ -198,6 +202,7 @@ class ScanConfig:
     near_field: bool = True
     map_blur_correction: bool = True
     diffuse_tau: float | None = 0.25
+    rgb_sampling: str = "nearest"
     refine_poses: bool = True
     refuse_geometry: bool = True
     refuse_rounds: int = 1
@@ -404,6 +409,8 @@ class ScanRunner:
         c = self.config
         if c.refuse_fine_scale is not None and not 0.25 <= float(c.refuse_fine_scale) <= 1.0:
             raise AppFusionError(f"scan config: refuse_fine_scale must be None or in [0.25, 1], got {c.refuse_fine_scale}")
+        if c.rgb_sampling not in ("nearest", "bilinear"):
+            raise AppFusionError(f"scan config: rgb_sampling must be 'nearest' or 'bilinear', got {c.rgb_sampling!r}")
         for name in ("refuse_trunc_voxels", "crease_radius_voxels"):
             v = getattr(c, name)
             if v is not None and not (np.isfinite(float(v)) and 1.0 <= float(v) <= 8.0):
@@ -1316,6 +1323,7 @@ class ScanRunner:
         blur = float((self.env.meta or {}).get("blur_var_rad2", 0.0) or 0.0) if self.env is not None else 0.0
         return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf,
                 "estimator": self.config.rho_d_estimator, "diffuse_tau": self.config.diffuse_tau,
+                "rgb_sampling": self.config.rgb_sampling,
                 "map_blur_var": blur if self.config.map_blur_correction else 0.0}
 
     def _near_field(self):

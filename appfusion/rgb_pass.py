@@ -42,8 +42,9 @@ rho_s (Eq. 8), constant memory and live
 Samples
     Registration (``registration=``): ``"points"`` (default) projects every point into the depth
     image, keeps it where the measured depth agrees within ``depth_tol`` and it faces the camera, then
-    projects it into the RGB camera (``depth_to_rgb``) and reads the RGB pixel there -- one sample
-    per visible point and frame, taken exactly where the point is. ``"pixels"`` is the paper's
+    projects it into the RGB camera (``depth_to_rgb``) and reads the image there (``rgb_sampling``:
+    the nearest pixel, the default, or bilinear between the four around it) -- one sample per
+    visible point and frame. ``"pixels"`` is the paper's
     wording: every depth pixel goes to its nearest point with :func:`appfusion.points.register_pixels`
     (a grid look-up, nearest up to a cell of ``max_dist / 2``), is transformed into the RGB camera and
     read there, and the pixels of one point in one frame (same ``w_o``) are averaged into one sample.
@@ -347,10 +348,14 @@ class RGBPass:
     registration : {"pixels", "points"}
         ``"pixels"`` (paper): every depth pixel to its nearest point (:func:`appfusion.points.register_pixels`),
         the pixels of a point averaged. ``"points"``: every point projected into the depth image, kept
-        where the depth there agrees within ``depth_tol`` (visible) and it faces the camera; one RGB pixel
-        per point, read exactly where the point projects.
+        where the depth there agrees within ``depth_tol`` (visible) and it faces the camera; one RGB
+        sample per point, read where the point projects (``rgb_sampling``).
     depth_tol : float
         Visibility tolerance of ``"points"`` registration, metres.
+    rgb_sampling : {"bilinear", "nearest"}
+        How a sample reads the RGB image where its point projects: the nearest pixel (up to half a
+        pixel off; default) or bilinear between the four pixels around it, a low-pass that read
+        sharp highlights ~1 % lower and blurred a 320 x 240 scan's colour seam (docs/rgb-pass.md §6).
     table_kwargs : dict, optional
         Passed to :class:`~appfusion.double_product.DoubleProductTables`.
     near_field : appfusion.near_field.SupportPlaneLight, optional
@@ -384,6 +389,7 @@ class RGBPass:
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
                  depth_tol: float = 0.01, table_kwargs: dict | None = None, near_field=None,
                  diffuse_tau: float | None = 0.25, near_field_samples: int = 4, compare_alphas=None,
+                 rgb_sampling: str = "nearest",
                  map_blur_var: float = 0.0):
         P, N = check_oriented_points(positions, normals, "RGBPass")
         lab = np.asarray(labels)
@@ -399,6 +405,9 @@ class RGBPass:
             raise AppFusionError(f"RGBPass: estimator must be 'lsq' or 'percentile', got {estimator!r}")
         if registration not in ("pixels", "points"):
             raise AppFusionError(f"RGBPass: registration must be 'pixels' or 'points', got {registration!r}")
+        if rgb_sampling not in ("bilinear", "nearest"):
+            raise AppFusionError(f"RGBPass: rgb_sampling must be 'bilinear' or 'nearest', got {rgb_sampling!r}")
+        self.rgb_sampling = rgb_sampling
         if bins < 4 or not (0 < ratio_range[0] < ratio_range[1]) or not 0 < percentile < 100:
             raise AppFusionError(f"RGBPass: need bins >= 4, 0 < ratio_range[0] < ratio_range[1], 0 < percentile < 100; "
                                  f"got {bins}, {ratio_range}, {percentile}")
@@ -625,10 +634,24 @@ class RGBPass:
         ok = (zr > 1e-3) & (ur >= -0.5) & (ur < W - 0.5) & (vr >= -0.5) & (vr < H - 0.5)
         if not ok.all():
             pts, ur, vr = pts[ok], ur[ok], vr[ok]
-        # nearest RGB pixel (the RGB image is sampled where the depth pixel lands)
-        ui = np.clip(np.rint(ur).astype(np.int64), 0, W - 1)
-        vi = np.clip(np.rint(vr).astype(np.int64), 0, H - 1)
-        return pts, rgb.reshape(-1, 3).take(vi * W + ui, axis=0), C
+        flat = rgb.reshape(-1, 3)
+        if self.rgb_sampling == "nearest" or W < 2 or H < 2:
+            ui = np.clip(np.rint(ur).astype(np.int64), 0, W - 1)
+            vi = np.clip(np.rint(vr).astype(np.int64), 0, H - 1)
+            return pts, flat.take(vi * W + ui, axis=0), C
+        # bilinear between the four pixel centres around the projection (clamped at the border); a
+        # NaN pixel among them makes the sample NaN, which _add skips
+        u0 = np.clip(np.floor(ur).astype(np.int64), 0, W - 2)
+        v0 = np.clip(np.floor(vr).astype(np.int64), 0, H - 2)
+        au = np.clip(ur - u0, 0.0, 1.0).astype(np.float32)[:, None]
+        av = np.clip(vr - v0, 0.0, 1.0).astype(np.float32)[:, None]
+        i = v0 * W + u0
+        top = flat.take(i, axis=0).astype(np.float32)
+        top += (flat.take(i + 1, axis=0) - top) * au
+        bot = flat.take(i + W, axis=0).astype(np.float32)
+        bot += (flat.take(i + W + 1, axis=0) - bot) * au
+        top += (bot - top) * av
+        return pts, top, C
 
     def add_samples(self, point_idx: np.ndarray, L: np.ndarray, camera_center: np.ndarray,
                     saturated: np.ndarray | None = None) -> int:

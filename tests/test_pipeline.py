@@ -57,6 +57,9 @@ def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect
     assert gp.fusion.config.voxel_size == pytest.approx(gp._tracking_voxel * 2 / 3)
     with pytest.raises(AppFusionError, match="refuse_voxel_scale"):
         _run(kinect_sphere, tmp_path / "tiny", refuse_voxel_scale=0.1)
+    with pytest.raises(AppFusionError, match="rgb_sampling"):
+        _run(kinect_sphere, tmp_path / "cubic", rgb_sampling="cubic")
+    assert not (tmp_path / "cubic" / "state").exists()
 
 
 def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere, tmp_path):

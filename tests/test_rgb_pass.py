@@ -483,3 +483,37 @@ def test_map_blur_var_reads_S_at_the_effective_roughness(sphere_run):
     for bad in (-1e-4, np.nan, np.inf):
         with pytest.raises(AppFusionError, match="map_blur_var"):
             RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, map_blur_var=bad)
+
+
+def test_rgb_sampling_reads_the_image_where_the_point_projects(sphere_run):
+    """``rgb_sampling="bilinear"`` reads a linear ramp exactly at a point's sub-pixel projection;
+    ``"nearest"`` (default) reads the pixel it rounds to. A NaN pixel among the four makes the
+    sample NaN (``_add`` skips it)."""
+    from appfusion.frame import Intrinsics
+
+    sc, _, _, rp, _ = sphere_run
+    K = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    v, u = np.mgrid[0:48, 0:64].astype(np.float32)
+    rgb = np.stack([u, v, u + 2 * v], -1) / 200.0
+    rng = np.random.default_rng(3)
+    ur, vr = rng.uniform(0.2, 62.8, 40), rng.uniform(0.2, 46.8, 40)
+    z = rng.uniform(0.3, 0.8, 40)
+    Xd = ((ur - K.cx) * z / K.fx, (vr - K.cy) * z / K.fy, z)            # depth camera = RGB camera
+    pts = np.arange(40)
+    want = np.stack([ur, vr, ur + 2 * vr], -1) / 200.0
+    E = T = np.eye(4)
+    nearest = rp
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp.tables, rgb_sampling="bilinear")
+    p, col, _ = rp._lookup_rgb(rgb, pts, tuple(np.float32(x) for x in Xd), K, T, E)
+    assert nearest.rgb_sampling == "nearest" and (p == pts).all()
+    np.testing.assert_allclose(col, want, atol=2e-5)
+    p, col, _ = nearest._lookup_rgb(rgb, pts, tuple(np.float32(x) for x in Xd), K, T, E)
+    np.testing.assert_allclose(col, np.stack([np.rint(ur), np.rint(vr), np.rint(ur) + 2 * np.rint(vr)], -1) / 200.0,
+                               atol=1e-6)
+    assert np.abs(col - want).max() > 0.001
+    bad = rgb.copy()
+    bad[int(vr[0]), int(ur[0]) + 1] = np.nan
+    _, col, _ = rp._lookup_rgb(bad, pts, tuple(np.float32(x) for x in Xd), K, T, E)
+    assert np.isnan(col[0]).all() and np.isfinite(col[1:]).all()
+    with pytest.raises(AppFusionError, match="rgb_sampling"):
+        RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp.tables, rgb_sampling="cubic")
