@@ -431,6 +431,13 @@ class GeometryPass:
             raise EstimationError("geometry pass: no frame has shown all four white circles yet")
         return self.tracker.marker_to_world()
 
+    def fused_mesh(self) -> o3d.geometry.TriangleMesh:
+        """The whole fused surface, uncropped, in the fusion's world frame (the first tracked depth
+        camera's, metres): what is left of a scan whose markers never gave a marker frame."""
+        if self.fusion is None or self.fusion._n_integrated == 0:
+            raise EstimationError("geometry pass: no frame could be fused")
+        return self.fusion.extract_mesh()
+
     def _object_mesh(self, W2M: np.ndarray, box) -> o3d.geometry.TriangleMesh:
         """The fused surface in the marker frame, cropped to the object box (its small pieces
         dropped) and its small holes filled."""
@@ -558,7 +565,8 @@ class GeometryPass:
             box = self.box
         elif require_markers:
             raise EstimationError(
-                f"geometry pass: the four white circles were never seen together in {len(self.states)} frames "
+                f"geometry pass: the four white circles were never seen together in {len(self.states)} "
+                f"frame{'s' if len(self.states) != 1 else ''} "
                 f"(radius {self.marker_config.radius_m * 1e3:.0f} mm"
                 + ("" if self.marker_config.side_m is None else f", square side {self.marker_config.side_m * 1e3:.0f} mm")
                 + "), so there is no marker frame and no object box; check the markers are in view and the "

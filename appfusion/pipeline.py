@@ -30,7 +30,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .errors import AppFusionError, PassMissingError
+from .errors import AppFusionError, EstimationError, PassMissingError
 from .frame import Frame
 
 #: the passes in the order they are scanned
@@ -847,7 +847,13 @@ class ScanRunner:
                     how += ", "
                 self._note(f"geometry: {n} frames re-registered to the fused object with their circles and fused "
                            f"again ({how}{time.perf_counter() - t0:.0f} s)")
-        V, F, P, N, poses = self.geometry.finish(cfg.n_points)
+        try:
+            V, F, P, N, poses = self.geometry.finish(cfg.n_points)
+        except AppFusionError as e:
+            kept = self._keep_unaligned_surface()
+            if not kept:
+                raise
+            raise EstimationError(f"{e}{kept}") from None
         self.poses.update(poses)  # every fused frame's final pose in the marker frame
         self.points, self.mesh = (P, N), (V, F)
         idx = np.array(sorted(self.poses), np.int64)
@@ -856,6 +862,30 @@ class ScanRunner:
         self._mark_done("geometry", {"points": len(P), "faces": len(F), "frames_lost": lost})
         self._publish(force=True, positions=P.copy(), normals=N.copy())
         self._note(f"geometry: {len(F)} mesh faces, {len(P)} points sampled on the object")
+
+    def _keep_unaligned_surface(self) -> str:
+        """When the circles never gave a marker frame, write the surface fused so far (uncropped, the
+        first depth camera's frame) to ``geometry-unaligned.ply`` so that the geometry pass's work is
+        not lost; returns the sentence to append to the error ('' when there is nothing to keep)."""
+        gp = self.geometry.gp
+        if gp.tracker.initialised or gp.fusion is None or gp.fusion._n_integrated == 0:
+            return ""
+        import open3d as o3d
+
+        path = self.out_dir / "geometry-unaligned.ply"
+        try:
+            mesh = gp.fused_mesh()
+            if len(mesh.triangles) == 0:
+                return ""
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            if not o3d.io.write_triangle_mesh(str(path), mesh):
+                return ""
+        except Exception:  # keeping the surface must not hide the error itself
+            return ""
+        n = gp.fusion._n_integrated
+        return (f". The surface fused from {n} frame{'s' if n != 1 else ''} without a marker frame is kept in "
+                f"{path} ({len(mesh.triangles)} faces; the first tracked depth camera's frame, metres): "
+                f"geometry only, no object box and no appearance")
 
     def _stage_ir(self, start: int, stop: int) -> None:
         """§5.1-5.2: IR frames of the geometry pass into the BRDF cut; clusters and Ward fits."""

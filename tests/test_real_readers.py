@@ -51,6 +51,26 @@ def test_redwood_real_folder(redwood_dir):
     np.testing.assert_array_equal(frames[2].rgb, bgr[..., ::-1])  # RGB order
 
 
+def test_scan_of_a_recording_without_markers_keeps_the_fused_surface(redwood_dir, tmp_path):
+    """The Redwood frames show no printed circles: the scan stops at the geometry pass with one
+    error that says so, and the surface it fused is written beside it (uncropped, camera frame)."""
+    import open3d as o3d
+
+    from appfusion.errors import EstimationError
+    from appfusion.pipeline import ScanConfig, run_scan
+
+    out = tmp_path / "scan"
+    with pytest.raises(EstimationError, match="never seen together") as e:
+        run_scan(redwood_dir, out, config=ScanConfig(n_points=2000), log=lambda *a: None)
+    kept = out / "geometry-unaligned.ply"
+    assert str(kept) in str(e.value) and "geometry only" in str(e.value)
+    mesh = o3d.io.read_triangle_mesh(str(kept))
+    V = np.asarray(mesh.vertices)
+    assert len(mesh.triangles) > 10000
+    # the room the Redwood camera looks at, 1-3 m in front of the first camera
+    assert 0.8 < np.median(V[:, 2]) < 3.0
+
+
 def test_redwood_poses_are_camera_to_world(redwood_dir):
     """Depth of frames 0 and 4 back-projected with the trajectory poses lands on the same surface."""
     fs = [RedwoodReader(redwood_dir)[i] for i in (0, 4)]
