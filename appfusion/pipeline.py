@@ -868,13 +868,13 @@ class ScanRunner:
         first depth camera's frame) to ``geometry-unaligned.ply`` so that the geometry pass's work is
         not lost; returns the sentence to append to the error ('' when there is nothing to keep)."""
         gp = self.geometry.gp
-        if gp.tracker.initialised or gp.fusion is None or gp.fusion._n_integrated == 0:
+        if gp.tracker.initialised:
             return ""
         import open3d as o3d
 
         path = self.out_dir / "geometry-unaligned.ply"
         try:
-            mesh = gp.fused_mesh()
+            mesh = gp.fused_mesh()                      # raises when no frame was fused
             if len(mesh.triangles) == 0:
                 return ""
             self.out_dir.mkdir(parents=True, exist_ok=True)
