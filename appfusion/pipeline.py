@@ -85,6 +85,10 @@ class ScanConfig:
     rgb_split : bool
         Let the RGB pass split off the part of an IR cluster that shows far less specular reflection
         in colour (:meth:`appfusion.rgb_pass.RGBPass.split_by_specular`).
+    rgb_colour_regions : bool
+        After the split, let a point whose own neighbourhood cannot tell the clusters' colour models
+        apart take the model its whole colour region fits best
+        (:func:`appfusion.rgb_pass.colour_regions`; beyond the paper).
     near_field : bool
         Light the object with the support plane as seen from each point (black paper, the white
         circles, the object's shadow on them: :mod:`appfusion.near_field`) instead of as the mirror
@@ -198,6 +202,7 @@ class ScanConfig:
     rho_d_bins: int = 64
     rho_d_estimator: str = "lsq"
     rgb_split: bool = True
+    rgb_colour_regions: bool = True
     rgb_resweep: bool = True
     near_field: bool = True
     map_blur_correction: bool = True
@@ -1223,7 +1228,7 @@ class ScanRunner:
             self.timings["rgb"] = t_first
         self.rgb = rgb
         if compare is not None and len(compare):
-            moved = rgb.reassign_by_model()
+            moved = rgb.reassign_by_model(colour_regions_on=self.config.rgb_colour_regions)
             self._note(f"rgb: {moved} points moved to the cluster whose colour model fits their neighbourhood best")
         return rgb.result(), rgb.labels_caller_order()
 

@@ -517,3 +517,68 @@ def test_rgb_sampling_reads_the_image_where_the_point_projects(sphere_run):
     assert np.isnan(col[0]).all() and np.isfinite(col[1:]).all()
     with pytest.raises(AppFusionError, match="rgb_sampling"):
         RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp.tables, rgb_sampling="cubic")
+
+
+def test_colour_regions_follow_colour_and_do_not_chain_through_a_gradient():
+    """colour_regions: a ring of one (noisy) colour is one region however long; two colours meeting
+    along a soft seam, blended step by step so that neighbours differ by less than the tolerance,
+    never share a region (the span limit cuts the chain)."""
+    from appfusion.rgb_pass import colour_regions
+
+    rng = np.random.default_rng(1)
+    # a cylinder band 6 cm tall, r 4 cm, ~1 mm spacing: cream below, blue above, with a 2 cm linear
+    # blend between them (chromaticity steps ~0.045 between neighbouring rows)
+    n_phi, n_z = 250, 60
+    phi, z = np.meshgrid(np.linspace(0, 2 * np.pi, n_phi, endpoint=False), np.linspace(0, 0.06, n_z))
+    P = np.column_stack([0.04 * np.cos(phi.ravel()), 0.04 * np.sin(phi.ravel()), z.ravel()])
+    cream, blue = np.array([0.76, 0.68, 0.50]), np.array([0.05, 0.12, 0.45])
+    t = np.clip((P[:, 2] - 0.02) / 0.02, 0, 1)[:, None]
+    rd = (cream * (1 - t) + blue * t) * rng.uniform(0.97, 1.03, (len(P), 3))
+    reg = colour_regions(P, rd)
+    lo, hi = P[:, 2] < 0.018, P[:, 2] > 0.042
+    assert len(np.unique(reg[lo])) == 1 and len(np.unique(reg[hi])) == 1    # each colour: one ring
+    assert reg[lo][0] != reg[hi][0]                                          # never chained together
+    # each region spans at most `span` in chromaticity (summed 2-98 % ranges)
+    chrom = rd / rd.sum(axis=1, keepdims=True)
+    for r in np.unique(reg):
+        m = reg == r
+        if m.sum() > 2:
+            q = np.percentile(chrom[m], [2, 98], axis=0)
+            assert (q[1] - q[0]).sum() <= 0.5 + 1e-9
+    # a larger tolerance with no span limit would chain them: the guard is what separates them
+    assert len(np.unique(colour_regions(P, rd, tol=0.1, span=10.0)[lo | hi])) == 1
+
+
+def test_weak_points_take_their_colour_regions_evidence():
+    """_choose_by_evidence with colour regions: a band whose points are each too weakly measured to
+    decide (z < min_z) but whose summed residuals decide takes that region's best model, far from
+    any confident point; a region whose sum does not decide leaves its points to the older rules."""
+    from appfusion.rgb_pass import _choose_by_evidence
+
+    rng = np.random.default_rng(2)
+    n = 600
+    P = np.column_stack([rng.uniform(0, 0.2, n), rng.uniform(0, 0.01, n), np.zeros(n)])   # a 20 cm strip
+    rd = np.tile([0.7, 0.6, 0.45], (n, 1))
+    regions = np.zeros(n, np.int64)
+    # every point's evidence for cluster 1 is tiny (0.3 standard errors) and noisy
+    own_rss = np.column_stack([np.full(n, 10.3), np.full(n, 10.0)]) + rng.normal(0, 0.05, (n, 2))
+    own_var = np.ones((n, 2)) * 0.5
+    movable = np.ones(n, bool)
+    cands = np.array([0, 1])
+    # pooled (local) evidence: also weak, and ties go to the first candidate
+    pooled, pvar = np.full((n, 2), 10.0), np.ones((n, 2))
+    before = _choose_by_evidence(pooled, pvar, cands, movable, P, rd, 3.0, 0.02)
+    assert (before == 0).all()
+    after = _choose_by_evidence(pooled, pvar, cands, movable, P, rd, 3.0, 0.02, regions=regions,
+                                own=(own_rss, own_var))
+    assert (after == 1).all()                     # 600 points x 0.3 / sqrt(600) ~ z 7: decided
+    # split into 600 regions of one point: no region decides, the old rule (argmin: 0) stays
+    alone = _choose_by_evidence(pooled, pvar, cands, movable, P, rd, 3.0, 0.02, regions=np.arange(n),
+                                own=(own_rss, own_var))
+    assert (alone == 0).all()
+    # a strong point keeps its own choice against its region
+    pooled2 = pooled.copy()
+    pooled2[:3] = [1.0, 50.0]
+    kept = _choose_by_evidence(pooled2, pvar, cands, movable, P, rd, 3.0, 0.02, regions=regions,
+                               own=(own_rss, own_var))
+    assert (kept[:3] == 0).all() and (kept[3:] == 1).all()
