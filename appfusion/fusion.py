@@ -1068,6 +1068,12 @@ class TSDFFusion:
         return hm.key_tensor()[hm.active_buf_indices().to(o3d.core.int64)]
 
     @property
+    def n_integrated(self) -> int:
+        """Number of frames integrated into the volume so far (tracked frames skipped as redundant,
+        :attr:`n_skipped`, and lost ones are not counted)."""
+        return int(self._n_integrated)
+
+    @property
     def n_blocks(self) -> int:
         """Number of allocated voxel blocks."""
         return int(self.vbg.hashmap().size())

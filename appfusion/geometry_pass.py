@@ -434,7 +434,7 @@ class GeometryPass:
     def fused_mesh(self) -> o3d.geometry.TriangleMesh:
         """The whole fused surface, uncropped, in the fusion's world frame (the first tracked depth
         camera's, metres): what is left of a scan whose markers never gave a marker frame."""
-        if self.fusion is None or self.fusion._n_integrated == 0:
+        if self.fusion is None or self.fusion.n_integrated == 0:
             raise EstimationError("geometry pass: no frame could be fused")
         return self.fusion.extract_mesh()
 
@@ -556,7 +556,7 @@ class GeometryPass:
             Without markers: raise (default), or return the whole model in the first camera's frame.
         """
         cfg = self.config
-        if self.fusion is None or self.fusion._n_integrated == 0:
+        if self.fusion is None or self.fusion.n_integrated == 0:
             reasons = sorted({s.reason for s in self.states if s.reason})[:3]
             raise EstimationError("geometry pass: no frame could be fused"
                                   + (f" ({'; '.join(reasons)})" if reasons else " (no frames given)"))

@@ -887,7 +887,7 @@ class ScanRunner:
                 return ""
         except Exception:  # keeping the surface must not hide the error itself
             return ""
-        n = gp.fusion._n_integrated
+        n = gp.fusion.n_integrated
         return (f". The surface fused from {n} frame{'s' if n != 1 else ''} without a marker frame is kept in "
                 f"{path} ({len(mesh.triangles)} faces; the first tracked depth camera's frame, metres): "
                 f"geometry only, no object box and no appearance")

@@ -153,7 +153,7 @@ def test_keyframes_skip_frames_without_new_coverage(monkeypatch):
     res = [fu.process(d) for d in (plane, plane, plane, bump)]
     assert [r.state for r in res] == ["first", "ok", "ok", "ok"], [r.reason for r in res]
     assert [r.integrated for r in res] == [True, False, False, True]
-    assert fu.n_skipped == 2 and fu._n_integrated == 2
+    assert fu.n_skipped == 2 and fu.n_integrated == 2
     assert len(calls) == 1                            # frames 2-4 track against frame 1's ray cast
     assert "integrate" not in res[1].ms and "skip_check" in res[1].ms
     # keyframes off: every tracked frame is fused (KinectFusion)

@@ -115,7 +115,7 @@ def keyframe_skip(quick: bool, seed: int, settings=None, repeats: int = 1) -> di
         cpu, wall, gp = best
         err = geometry_errors(seq, gp.result())
         out[name] = {"keyframe_m": km, "keyframe_deg": kd, "cpu_ms_per_frame": 1e3 * cpu / n,
-                     "wall_ms_per_frame": 1e3 * wall / n, "integrated": gp.fusion._n_integrated,
+                     "wall_ms_per_frame": 1e3 * wall / n, "integrated": gp.fusion.n_integrated,
                      "skipped": gp.fusion.n_skipped, "lost": sum(s.state == "lost" for s in gp.states),
                      **{k: v for k, v in err.items() if not k.startswith("_")}}
     return out
