@@ -93,6 +93,13 @@ class ScanConfig:
         Light the object with the support plane as seen from each point (black paper, the white
         circles, the object's shadow on them: :mod:`appfusion.near_field`) instead of as the mirror
         ball saw it, in D and S of Eq. 5 (beyond the paper's distant-light model, §3).
+    near_field_final_samples : int
+        Lobe samples of the support plane's ``dS`` (:meth:`appfusion.near_field.SupportPlaneLight.delta_S`)
+        in the RGB pass's offline re-sweeps (the second and third sweeps over the recording); the
+        live first sweep keeps 4 for its update rate. Monte Carlo noise in S is noise in the
+        regressor of rho_s, which dilutes the slope: the demo's matte label (truth 0.03) read 0.026,
+        0.025, 0.020 with 4 samples, 0.029, 0.029, 0.024 with 9 and 0.031, 0.032, 0.025 with 16
+        (``docs/rgb-pass.md`` §5c). Rounded to a square (k x k).
     map_blur_correction : bool
         Read S against the captured map at each lobe's effective roughness
         (:func:`appfusion.envmap.effective_alpha`, with the map's own blur ``blur_var_rad2``): a sharp
@@ -205,6 +212,7 @@ class ScanConfig:
     rgb_colour_regions: bool = True
     rgb_resweep: bool = True
     near_field: bool = True
+    near_field_final_samples: int = 16
     map_blur_correction: bool = True
     diffuse_tau: float | None = 0.25
     rgb_sampling: str = "nearest"
@@ -414,6 +422,9 @@ class ScanRunner:
         c = self.config
         if c.refuse_fine_scale is not None and not 0.25 <= float(c.refuse_fine_scale) <= 1.0:
             raise AppFusionError(f"scan config: refuse_fine_scale must be None or in [0.25, 1], got {c.refuse_fine_scale}")
+        if not (isinstance(c.near_field_final_samples, (int, np.integer)) and 1 <= int(c.near_field_final_samples) <= 256):
+            raise AppFusionError("scan config: near_field_final_samples must be an integer in [1, 256] (lobe samples of "
+                                 f"the support plane's dS in the RGB re-sweeps), got {c.near_field_final_samples!r}")
         if c.rgb_sampling not in ("nearest", "bilinear"):
             raise AppFusionError(f"scan config: rgb_sampling must be 'nearest' or 'bilinear', got {c.rgb_sampling!r}")
         for name in ("refuse_trunc_voxels", "crease_radius_voxels"):
@@ -1197,7 +1208,8 @@ class ScanRunner:
         exported with, and the split-off cluster's rho_s was not measured at all (it was made
         diffuse). The sums of §5.3 cannot be re-weighted after the fact (S enters them per sample),
         so the frames are swept once more -- the recording is on disk, live scans included
-        (``live-session``). No further split. A cluster gets a lobe if it had one in the first sweep
+        (``live-session``), and offline, so the support plane's ``dS`` takes
+        ``near_field_final_samples`` lobe samples instead of the live sweep's 4. No further split. A cluster gets a lobe if it had one in the first sweep
         or its lobe was refitted (``refitted``; a split-off cluster without an IR fit stays diffuse: a
         borrowed alpha would be a guess), and the model ladder decides again which clusters keep it.
         With ``rgb_split``, the lobes the first sweep kept are measured on every point too, and each
@@ -1219,7 +1231,7 @@ class ScanRunner:
         kept = [c for c in range(min(len(alpha), len(first.model))) if first.model[c] == "ward" and specular[c]]
         compare = np.unique(np.asarray(alpha, np.float64)[kept]) if self.config.rgb_split and reassign else None
         rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables,
-                      near_field=first.near_field, near_field_samples=first.near_field_samples,
+                      near_field=first.near_field, near_field_samples=int(self.config.near_field_final_samples),
                       compare_alphas=compare, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
         self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))

@@ -60,6 +60,10 @@ def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect
     with pytest.raises(AppFusionError, match="rgb_sampling"):
         _run(kinect_sphere, tmp_path / "cubic", rgb_sampling="cubic")
     assert not (tmp_path / "cubic" / "state").exists()
+    for bad in (0, 2.5, "16"):
+        with pytest.raises(AppFusionError, match="near_field_final_samples"):
+            _run(kinect_sphere, tmp_path / "samples", near_field_final_samples=bad)
+    assert not (tmp_path / "samples" / "state").exists()
 
 
 def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere, tmp_path):
