@@ -1209,8 +1209,8 @@ class ScanRunner:
         diffuse). The sums of §5.3 cannot be re-weighted after the fact (S enters them per sample),
         so the frames are swept once more -- the recording is on disk, live scans included
         (``live-session``), and offline, so the support plane's ``dS`` takes
-        ``near_field_final_samples`` lobe samples instead of the live sweep's 4. No further split. A cluster gets a lobe if it had one in the first sweep
-        or its lobe was refitted (``refitted``; a split-off cluster without an IR fit stays diffuse: a
+        ``near_field_final_samples`` lobe samples instead of the live sweep's 4. No further split. A
+        cluster gets a lobe if it had one in the first sweep or its lobe was refitted (``refitted``; a split-off cluster without an IR fit stays diffuse: a
         borrowed alpha would be a guess), and the model ladder decides again which clusters keep it.
         With ``rgb_split``, the lobes the first sweep kept are measured on every point too, and each
         point then goes to the cluster whose model fits its neighbourhood best

@@ -219,6 +219,12 @@ def _voxel_pool(positions: np.ndarray, labels: np.ndarray, values: np.ndarray, h
     return np.where(fallback[:, None], out, out / np.maximum(wsum, 1e-12)[:, None])
 
 
+def _chromaticity(rho_d: np.ndarray) -> np.ndarray:
+    """``rho_d / sum rho_d`` per point (P, 3): a colour without its brightness."""
+    rd = np.asarray(rho_d, np.float64)
+    return rd / np.maximum(rd.sum(axis=1, keepdims=True), 1e-9)
+
+
 def colour_regions(positions: np.ndarray, rho_d: np.ndarray, tol: float = 0.1, span: float = 0.5,
                    k: int = 9, min_tol: float = 0.0125) -> np.ndarray:
     """Connected regions of one colour on the sampled surface (beyond the paper; used by
@@ -258,8 +264,7 @@ def colour_regions(positions: np.ndarray, rho_d: np.ndarray, tol: float = 0.1, s
     region = np.arange(n, dtype=np.int64)
     if n < 2:
         return region
-    chrom = np.asarray(rho_d, np.float64)
-    chrom = chrom / np.maximum(chrom.sum(axis=1, keepdims=True), 1e-9)
+    chrom = _chromaticity(rho_d)
     kk = min(int(k), n)
     dd, nb = cKDTree(P).query(P, k=kk)
     reach = 4.0 * float(np.median(dd[:, 1]))
@@ -341,7 +346,9 @@ def _choose_by_evidence(rss: np.ndarray, var: np.ndarray, cands: np.ndarray, mov
     gap = rss[rows, second] - rss[rows, best]
     z = gap / np.sqrt(np.maximum(var[rows, best] + var[rows, second], 1e-300))
     choice = np.asarray(cands)[best]
-    weak = movable & (z < float(min_z))
+    low = z < float(min_z)
+    weak = movable & low
+    strong = np.flatnonzero(movable & ~low)
     out = choice.copy()
     if weak.any() and regions is not None and own is not None:
         reg = np.asarray(regions, np.int64)
@@ -356,10 +363,9 @@ def _choose_by_evidence(rss: np.ndarray, var: np.ndarray, cands: np.ndarray, mov
         decided = weak & (rz[reg] >= float(min_z))
         out[decided] = np.asarray(cands)[ro[reg[decided], 0]]
         weak = weak & ~decided
-    strong = np.flatnonzero(movable & ~(z < float(min_z)))
     if not weak.any() or len(strong) == 0:
         return out
-    chrom = rho_d / np.maximum(rho_d.sum(axis=1, keepdims=True), 1e-9)
+    chrom = _chromaticity(rho_d)
     wi = np.flatnonzero(weak)
     dd, nb = cKDTree(positions[strong]).query(positions[wi], k=min(32, len(strong)), distance_upper_bound=float(radius))
     dd, nb = dd.reshape(len(wi), -1), nb.reshape(len(wi), -1)
