@@ -33,6 +33,7 @@ def test_a_scan_stopped_midway_resumes_from_its_checkpoints(kinect_sphere, tmp_p
     r2, res = _run(kinect_sphere, out)
     assert any("geometry: reusing the checkpointed geometry" in m for m in r2.messages)
     assert (state / "rgb.done").exists()
+    assert any("pooled with neighbours that agree within" in m for m in r2.messages), r2.messages
     # the resumed scan = the uninterrupted one where it only reused the same geometry
     np.testing.assert_array_equal(res.positions, part.positions)
     assert res.n_clusters >= 1 and np.isfinite(res.rho_d).all() and np.isfinite(res.alpha).all()
@@ -64,6 +65,10 @@ def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect
         with pytest.raises(AppFusionError, match="near_field_final_samples"):
             _run(kinect_sphere, tmp_path / "samples", near_field_final_samples=bad)
     assert not (tmp_path / "samples" / "state").exists()
+    for name, bad in (("rho_d_pool_k", -1), ("rho_d_pool_k", 3.5), ("rho_d_pool_z", 0), ("rho_d_pool_z", float("nan"))):
+        with pytest.raises(AppFusionError, match=name):
+            _run(kinect_sphere, tmp_path / "pool", **{name: bad})
+    assert not (tmp_path / "pool" / "state").exists()
 
 
 def test_a_scan_resumed_after_its_ir_stage_keeps_the_leaf_buffers(kinect_sphere, tmp_path):

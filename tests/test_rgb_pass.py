@@ -13,7 +13,7 @@ import pytest
 
 from _rgb_sphere import TABLES, sphere_frames
 from appfusion.errors import AppFusionError
-from appfusion.rgb_pass import RGBPass, histogram_percentile
+from appfusion.rgb_pass import RGBPass, denoise_rho_d, histogram_percentile
 
 
 @pytest.fixture(scope="module")
@@ -582,3 +582,53 @@ def test_weak_points_take_their_colour_regions_evidence():
     kept = _choose_by_evidence(pooled2, pvar, cands, movable, P, rd, 3.0, 0.02, regions=regions,
                                own=(own_rss, own_var))
     assert (kept[:3] == 0).all() and (kept[3:] == 1).all()
+
+
+def test_denoise_rho_d_pools_within_regions_and_keeps_edges():
+    """The sigma filter lowers the noise of a uniform region, does not blur an edge that stands out
+    of the noise, leaves points without a standard error alone and pools within a cluster only."""
+    rng = np.random.default_rng(3)
+    g = np.stack(np.meshgrid(np.arange(40), np.arange(40), indexing="ij"), -1).reshape(-1, 2) * 1e-3
+    P = np.c_[g, np.zeros(len(g))]
+    left = P[:, 0] < 0.0195
+    truth = np.where(left[:, None], [0.2, 0.3, 0.4], [0.6, 0.3, 0.1])
+    se = np.full((len(P), 3), 0.02)
+    rd = truth + rng.normal(0, 0.02, truth.shape)
+    lab = np.zeros(len(P), np.int64)
+    lab[P[:, 1] > 0.0345] = 1                              # a strip of another cluster, same colours
+    rd[lab == 1] += 0.03                                   # ... offset within the noise: only the labels
+    blind = rng.choice(len(P), 20, replace=False)
+    se[blind] = np.inf
+    out = denoise_rho_d(P, rd, se, lab, k=32, z=2.5)
+    np.testing.assert_array_equal(out[blind], rd[blind])
+    m = (lab == 0) & np.isfinite(se[:, 0])
+    err_in, err_out = np.abs(rd - truth)[m].mean(), np.abs(out - truth)[m].mean()
+    assert err_out < err_in / 2.5, (err_in, err_out)
+    for side in (left, ~left):                             # the two columns either side of the edge
+        edge = m & side & (np.abs(P[:, 0] - 0.0195) < 0.0011)
+        assert np.abs((out - truth)[edge].mean(axis=0)).max() < 0.006
+    near = (lab == 1) & (P[:, 1] < 0.0365) & np.isfinite(se[:, 0])   # the strip's rows next to cluster 0
+    assert np.abs((out - truth)[near].mean(axis=0) - 0.03).max() < 0.004
+    # a point measured far better than its neighbours keeps its own value
+    se2 = se.copy()
+    se2[100] = 1e-4
+    assert np.abs(denoise_rho_d(P, rd, se2, lab)[100] - rd[100]).max() < 1e-3
+    with pytest.raises(AppFusionError, match="denoise_rho_d"):
+        denoise_rho_d(P, rd[:5], se, lab)
+
+
+def test_rho_d_stderr_matches_the_scatter_of_rho_d(sphere_run):
+    """rho_d's standard error (:meth:`RGBPass.rho_d_stderr`) is what rho_d scatters by around the
+    truth under known sample noise (the z-scores' spread is about 1)."""
+    sc, poses, _, rp0, _ = sphere_run
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, diffuse_tau=None)
+    for vis, L, C in _model_samples(sc, poses, rp0.tables, sc.alphas[sc.labels], sc.rho_s[sc.labels],
+                                    np.random.default_rng(11), 0.15):
+        rp.add_samples(vis, L, C)
+    res = rp.result()
+    se = rp.rho_d_stderr()
+    ok = np.isfinite(se).all(axis=1)
+    assert ok.mean() > 0.5 and (~ok == (res.counts < 3)).all()
+    z = (res.rho_d[ok] - sc.rho_d[ok]) / se[ok]
+    spread = 1.4826 * np.median(np.abs(z))
+    assert 0.7 < spread < 1.3, spread
