@@ -220,11 +220,11 @@ def _voxel_pool(positions: np.ndarray, labels: np.ndarray, values: np.ndarray, h
 
 
 def denoise_rho_d(positions: np.ndarray, rho_d: np.ndarray, stderr: np.ndarray, labels: np.ndarray,
-                  k: int = 32, z: float = 2.5) -> np.ndarray:
+                  k: int = 32, z: float = 2.5, max_dist: float = 0.008) -> np.ndarray:
     """Noise-aware, edge-preserving smoothing of per-point rho_d (a sigma filter; beyond the paper).
 
     Each point's rho_d becomes the inverse-variance weighted mean over itself and those of its ``k``
-    nearest points of the same cluster whose rho_d agrees with its own within ``z`` combined standard
+    nearest points of the same cluster within ``max_dist`` whose rho_d agrees with its own within ``z`` combined standard
     errors in every channel, ``|rho_q - rho_p| <= z sqrt(se_p^2 + se_q^2)`` (Lee's sigma filter with
     a known noise level per point). Where a point's samples are few, its neighbours' evidence is
     pooled; a texture edge whose step is large against the noise is not crossed, and a point
@@ -248,6 +248,13 @@ def denoise_rho_d(positions: np.ndarray, rho_d: np.ndarray, stderr: np.ndarray, 
         Neighbours considered (the point itself included).
     z : float
         Agreement threshold in standard errors.
+    max_dist : float
+        Farthest neighbour pooled, metres (default 8 mm). A scan's points lie 1-3 mm apart, so its
+        ``k`` nearest are within a few mm (the 32nd: 2 mm on the demo, 6 mm on `bench --quick`'s
+        10k-point scan). On a sparse set the truth varies over a neighbourhood by less than the
+        acceptance band but more than the noise: on `bench`'s 1200-point sphere (8 mm between
+        neighbours, 26 mm to the 32nd) pooling cost 0.72 -> 0.76 % of median error, within 8 mm
+        0.74 %.
 
     Returns
     -------
@@ -262,22 +269,23 @@ def denoise_rho_d(positions: np.ndarray, rho_d: np.ndarray, stderr: np.ndarray, 
     if rd.shape != (len(P), 3) or se.shape != rd.shape or lab.shape != (len(P),):
         raise AppFusionError(f"denoise_rho_d: need positions (P, 3), rho_d and stderr (P, 3), labels (P,); got "
                              f"{P.shape}, {rd.shape}, {se.shape}, {lab.shape}")
-    if not (int(k) >= 1 and z > 0):
-        raise AppFusionError(f"denoise_rho_d: need k >= 1 and z > 0, got k={k}, z={z}")
+    if not (int(k) >= 1 and z > 0 and max_dist > 0):
+        raise AppFusionError(f"denoise_rho_d: need k >= 1, z > 0 and max_dist > 0, got k={k}, z={z}, max_dist={max_dist}")
     ok = np.isfinite(se).all(axis=1) & np.isfinite(rd).all(axis=1)
     idx = np.flatnonzero(ok)
     out = rd.copy()
     kk = min(int(k), len(idx))
     if kk < 2:
         return out
-    se = np.maximum(se[idx], 1e-9)
-    r = rd[idx]
-    li = lab[idx]
-    _, nb = cKDTree(P[idx]).query(P[idx], kk)
-    out_i = np.empty_like(r)
+    # a sentinel row (index len(idx)) stands for the neighbours beyond max_dist: weight 0, no label
+    se = np.r_[np.maximum(se[idx], 1e-9), np.full((1, 3), np.inf)]
+    r = np.r_[rd[idx], np.zeros((1, 3))]
+    li = np.r_[lab[idx].astype(np.int64), -1]
+    _, nb = cKDTree(P[idx]).query(P[idx], kk, distance_upper_bound=float(max_dist))
+    out_i = np.empty((len(idx), 3))
     step = max(1, 2_000_000 // (kk * 3))                   # bounded temporaries: ~50 MB a block
     for a in range(0, len(idx), step):
-        b = slice(a, a + step)
+        b = slice(a, min(a + step, len(idx)))
         nq = nb[b]
         sq, rq = se[nq], r[nq]                              # (m, k, 3)
         agree = (np.abs(rq - r[b, None]) <= z * np.sqrt(sq * sq + se[b, None] ** 2)).all(axis=2)

@@ -613,6 +613,8 @@ def test_denoise_rho_d_pools_within_regions_and_keeps_edges():
     se2 = se.copy()
     se2[100] = 1e-4
     assert np.abs(denoise_rho_d(P, rd, se2, lab)[100] - rd[100]).max() < 1e-3
+    # nothing within max_dist (the grid is 1 mm): nothing pooled
+    np.testing.assert_allclose(denoise_rho_d(P, rd, se, lab, max_dist=0.0009), rd, rtol=1e-12, atol=0)
     with pytest.raises(AppFusionError, match="denoise_rho_d"):
         denoise_rho_d(P, rd[:5], se, lab)
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from ...double_product import DoubleProductTables
 from ...frame import Intrinsics, make_pose
-from ...rgb_pass import RGBPass
+from ...rgb_pass import RGBPass, denoise_rho_d
 from ...rgb_synth import (SphereScene, brute_force_S, fibonacci_sphere, orbit_poses, synthetic_envmap,
                           two_material_sphere)
 
@@ -128,7 +128,15 @@ def point_set(quick: bool, seed: int, registration: str = "points", scene=None) 
     ob = res.observed
     rel = np.abs(res.rho_d[ob] - sc.rho_d[ob]) / sc.rho_d[ob]
     rs = res.rho_s / sc.rho_s - 1
-    return {"points": len(sc.positions), "views": len(poses), "observed": float(ob.mean()),
+    # the scan's pooling of the final rho_d (ScanConfig.rho_d_pool_k; docs/rgb-pass.md §5g)
+    se = rp.rho_d_stderr(res.rho_s)
+    pool = {0: (0.0, float(np.median(rel)))}
+    for k in (16, 32, 64):
+        t0 = time.perf_counter()
+        rd = denoise_rho_d(sc.positions, res.rho_d, se, sc.labels, k=k)
+        ms = 1e3 * (time.perf_counter() - t0)
+        pool[k] = (ms, float(np.median(np.abs(rd[ob] - sc.rho_d[ob]) / sc.rho_d[ob])))
+    return {"rho_d_pool": pool, "points": len(sc.positions), "views": len(poses), "observed": float(ob.mean()),
             "median_samples_per_point": float(np.median(res.counts[ob])),
             "rho_d_median_rel_err": float(np.median(rel)), "rho_d_p90_rel_err": float(np.percentile(rel, 90)),
             "rho_d_median_signed": float(np.median((res.rho_d[ob] - sc.rho_d[ob]) / sc.rho_d[ob])),
@@ -223,6 +231,11 @@ def run(ctx) -> dict[str, float | None]:
                       note="RGB registration: project points (default) or register every depth pixel to its "
                            "nearest point (paper). time = CPU ms per 640x480 frame of a 100k-point sphere; "
                            "error = largest rho_s rel. error on the two-material sphere")
+    ctx.add_sweep("rho_d_pool_k", "rho_d_median_rel_err", 32,
+                  [{"value": k, "ms_per_frame": t, "error": e} for k, (t, e) in ps.pop("rho_d_pool").items()],
+                  note="rho_d pooled with the k nearest points of its cluster that agree within 2.5 standard "
+                       "errors (0: off). time = ms once per scan on the sphere's points, not per frame; error = "
+                       "median rho_d rel. error")
     ctx.extra["rgb"] = extra
     return {"double_product_rel_err": dp["rel_rms"], "wavelet_tables_mb": dp["tables_mb"],
             "wavelet_build_s": dp["build_cpu_s"], "rho_d_median_rel_err": ps["rho_d_median_rel_err"],
