@@ -53,8 +53,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: roughness; 20: the normal filter's stages run only while it converges; 21: refuse_voxel_scale in
 #: the configuration; 22: specular normal refinement, its normals saved with the RGB stage; 23: normals
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
-#: configuration)
-CHECKPOINT_VERSION = 23
+#: configuration; 24: rho_d corrected for the noise clipped at black)
+CHECKPOINT_VERSION = 24
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -88,6 +88,10 @@ class ScanConfig:
         variance (:func:`appfusion.rgb_pass.denoise_rho_d`; ``lsq`` only; ``rho_d_pool_k`` 0 or 1:
         off). Each point's own estimate scatters by its samples' noise; edges that stand out of the
         noise are kept.
+    rho_d_clip_correction : bool
+        Correct each point's least-squares rho_d for the sensor noise clipped at black in its dark
+        channels, from the fraction of its samples (pooled with its 31 nearest points) that read 0
+        (:func:`appfusion.rgb_pass.clipped_mean_factor`; ``lsq`` only; docs/rgb-pass.md §5h).
     rgb_split : bool
         Let the RGB pass split off the part of an IR cluster that shows far less specular reflection
         in colour (:meth:`appfusion.rgb_pass.RGBPass.split_by_specular`).
@@ -216,6 +220,7 @@ class ScanConfig:
     rho_d_estimator: str = "lsq"
     rho_d_pool_k: int = 32
     rho_d_pool_z: float = 2.5
+    rho_d_clip_correction: bool = True
     rgb_split: bool = True
     rgb_colour_regions: bool = True
     rgb_resweep: bool = True
@@ -433,6 +438,8 @@ class ScanRunner:
         if not (isinstance(c.near_field_final_samples, (int, np.integer)) and 1 <= int(c.near_field_final_samples) <= 256):
             raise AppFusionError("scan config: near_field_final_samples must be an integer in [1, 256] (lobe samples of "
                                  f"the support plane's dS in the RGB re-sweeps), got {c.near_field_final_samples!r}")
+        if not isinstance(c.rho_d_clip_correction, (bool, np.bool_)):
+            raise AppFusionError(f"scan config: rho_d_clip_correction must be True or False, got {c.rho_d_clip_correction!r}")
         if not (isinstance(c.rho_d_pool_k, (int, np.integer)) and 0 <= int(c.rho_d_pool_k) <= 1024):
             raise AppFusionError("scan config: rho_d_pool_k must be an integer in [0, 1024] (neighbours a point's "
                                  f"rho_d is pooled with; 0 or 1: off), got {c.rho_d_pool_k!r}")
@@ -1397,7 +1404,7 @@ class ScanRunner:
         blur = float((self.env.meta or {}).get("blur_var_rad2", 0.0) or 0.0) if self.env is not None else 0.0
         return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf,
                 "estimator": self.config.rho_d_estimator, "diffuse_tau": self.config.diffuse_tau,
-                "rgb_sampling": self.config.rgb_sampling,
+                "rgb_sampling": self.config.rgb_sampling, "clip_correction": bool(self.config.rho_d_clip_correction),
                 "map_blur_var": blur if self.config.map_blur_correction else 0.0}
 
     def _near_field(self):

@@ -296,6 +296,33 @@ def denoise_rho_d(positions: np.ndarray, rho_d: np.ndarray, stderr: np.ndarray, 
     return out
 
 
+def clipped_mean_factor(zero_fraction) -> np.ndarray:
+    """Ratio of the true mean to the observed mean of Gaussian samples clipped at 0, from the
+    fraction of samples that read 0 (docs/rgb-pass.md §5h).
+
+    A sensor whose noise is clipped at black reads ``Y = max(X, 0)``, ``X ~ N(mu, sigma^2)``, so
+    ``E[Y] = sigma (t Phi(t) + phi(t))`` with ``t = mu / sigma``, while ``P(Y = 0) = Phi(-t)``. The
+    zero fraction gives ``t`` without knowing ``sigma``, and ``mu = E[Y] t / (t Phi(t) + phi(t))``.
+    1 where nothing was clipped, 0 from half the samples at 0 on (the median is black).
+
+    Parameters
+    ----------
+    zero_fraction : array_like
+        Fraction of samples at 0, in [0, 1].
+
+    Returns
+    -------
+    ndarray of float64, the same shape, in [0, 1].
+    """
+    from scipy.special import ndtr, ndtri
+
+    f = np.clip(np.asarray(zero_fraction, np.float64), 0.0, 1.0)
+    t = -ndtri(np.clip(f, 1e-12, 0.5))
+    h1 = t * ndtr(t) + np.exp(-0.5 * t * t) / math.sqrt(2 * math.pi)
+    out = np.where(f >= 0.5, 0.0, t / np.maximum(h1, 1e-300))
+    return np.where(f <= 0, 1.0, np.clip(out, 0.0, 1.0))
+
+
 def _chromaticity(rho_d: np.ndarray) -> np.ndarray:
     """``rho_d / sum rho_d`` per point (P, 3): a colour without its brightness."""
     rd = np.asarray(rho_d, np.float64)
@@ -558,6 +585,12 @@ class RGBPass:
         lobe does not see the lights widened twice (demo, alpha 0.06: rho_s +1.9 % without). 0: the
         lobes' own alphas. The support plane's ``dS`` keeps the lobe's alpha (the plane is modelled,
         not blurred).
+    clip_correction, clip_pool_k : bool, int
+        Least-squares rho_d (``"lsq"``) corrects each point's means of L for the sensor noise clipped
+        at black in dark channels (:func:`clipped_mean_factor`), from the fraction of samples that
+        read exactly 0 over the point and its nearest points of the same cluster within 8 mm
+        (``clip_pool_k`` in all, default 32; docs/rgb-pass.md §5h). Without it a channel a noise
+        width or two above black reads high.
     """
 
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
@@ -570,7 +603,7 @@ class RGBPass:
                  depth_tol: float = 0.01, table_kwargs: dict | None = None, near_field=None,
                  diffuse_tau: float | None = 0.25, near_field_samples: int = 4, compare_alphas=None,
                  rgb_sampling: str = "nearest",
-                 map_blur_var: float = 0.0):
+                 map_blur_var: float = 0.0, clip_correction: bool = True, clip_pool_k: int = 32):
         P, N = check_oriented_points(positions, normals, "RGBPass")
         lab = np.asarray(labels)
         if lab.shape != (len(P),) or not np.issubdtype(lab.dtype, np.integer):
@@ -664,6 +697,11 @@ class RGBPass:
         self.bin_mean = np.zeros((n, 3, self.bins), np.uint8)       # mean position in the bin, /255
         self._rng = np.random.default_rng(0)
         self.counts = np.zeros(n, np.int64)
+        # samples whose channel read exactly 0 (noise clipped at black), per point and channel
+        self.zeros = np.zeros((n, 3), np.int32)
+        self.clip_correction = bool(clip_correction)
+        self.clip_pool_k = max(1, int(clip_pool_k))
+        self._clip_nbr = None
         # the per-point sums, (n, 3) each, are views of one (n, 8, 3) array, so that a frame gathers
         # and scatters a point's 24 sums at once (one cache-friendly row, not eight scattered ones):
         # sum S^2, SL, SD, S, L, L^2, and the diffuse weighting's sum wL, wS. sum S and sum L: with D
@@ -689,7 +727,7 @@ class RGBPass:
     @property
     def nbytes(self) -> int:
         """Bytes of the per-point state (histograms and sums), excluding the tables."""
-        return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + 8 * self.sum_s2.nbytes
+        return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + self.zeros.nbytes + 8 * self.sum_s2.nbytes
                    + self.sum_w.nbytes + self.D.nbytes + 5 * self.cmp_s.nbytes + self.cmp_w.nbytes)
 
     # -- per-frame --------------------------------------------------------------------------
@@ -992,6 +1030,7 @@ class RGBPass:
             fp = np.unique(p[full.any(axis=1)])
             self.hist[fp] = (self.hist[fp] + 1) // 2          # keep the shape (and the bin means), halve counts
         self.counts[p] += 1
+        self.zeros[p] += L <= 0
         weighted = self.diffuse_tau is not None
         u = np.empty((len(p), 8 if weighted else 6, 3))      # this frame's terms, in self._sums's order
         np.multiply(S, S, out=u[:, 0])
@@ -1133,8 +1172,35 @@ class RGBPass:
             sw = self.sum_w[:, None]
             rd_w = (self.sum_wl - rho_s[lab] * self.sum_ws) / np.maximum(sw, 1e-300) / D
             rd = np.where(sw > 1e-6, rd_w, rd)
+        if self.clip_correction:
+            # noise clipped at black: the diffuse level, what is left once the specular term is taken
+            # out, times the point's clipped_mean_factor (1: nothing clipped)
+            rd = rd * self._clip_factor()
         rd = np.where(use[:, None], np.maximum(rd, 0.0), rd_pct)
         return rd, rho_s, den
+
+    def _clip_factor(self) -> np.ndarray:
+        """:func:`clipped_mean_factor` (P, 3) of each point's samples: the fraction that read 0, pooled
+        over the point and its ``clip_pool_k - 1`` nearest points of the same cluster within 8 mm
+        (cached per labelling). It scales the diffuse level ``D rho_d`` (the mean of L less the
+        specular term): the samples near black are the clipped ones, a highlight sample is never 0
+        and is taken out whole by ``rho_s S``, though it dilutes the fraction (under-correcting
+        where the lobe varies)."""
+        if not self.zeros.any():
+            return np.ones_like(self.sum_l)
+        key = hashlib.blake2b(self.labels.tobytes(), digest_size=16).digest()
+        if self._clip_nbr is None or self._clip_nbr[0] != key:
+            k = min(self.clip_pool_k, len(self.positions))
+            dist, idx = cKDTree(self.positions).query(self.positions, k=k, distance_upper_bound=0.008)
+            idx = np.asarray(idx).reshape(len(self.positions), k)
+            ok = np.isfinite(np.asarray(dist).reshape(idx.shape))
+            idx = np.where(ok, idx, 0)
+            ok &= self.labels[idx] == self.labels[:, None]
+            self._clip_nbr = (key, idx, ok)
+        _, idx, ok = self._clip_nbr
+        z = (self.zeros[idx] * ok[:, :, None]).sum(axis=1).astype(np.float64)
+        n = (self.counts[idx] * ok).sum(axis=1).astype(np.float64)
+        return clipped_mean_factor(z / np.maximum(n, 1.0)[:, None])
 
     def split_by_specular(self, ratio: float = 0.5, pool_m: float = 0.008, min_fraction: float = 0.08,
                           min_samples: int = 3) -> list[tuple[int, int, int]]:

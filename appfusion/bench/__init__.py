@@ -66,6 +66,7 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "alpha_cluster_rel_err": ("fraction", 0.05, "lower"),
     "label_accuracy": ("fraction", 0.95, "higher"),
     "rho_d_median_rel_err": ("fraction", 0.03, "lower"),
+    "rho_d_dark_bias": ("fraction", 0.03, "lower"),            # median signed rho_d error of channels near black
     "rho_s_rel_err": ("fraction", 0.05, "lower"),
     "double_product_rel_err": ("fraction", 0.01, "lower"),
     "relit_rel_rmse": ("fraction", 0.05, "lower"),

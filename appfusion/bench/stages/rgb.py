@@ -146,6 +146,38 @@ def point_set(quick: bool, seed: int, registration: str = "points", scene=None) 
             "_scene": (sc, poses, frames, rp.tables, render_s)}
 
 
+def clipped_dark(seed: int, scene) -> dict[str, Any]:
+    """Dark channels a noise width above black, the noise clipped at 0 (docs/rgb-pass.md §5h): rho_d of
+    the sphere's points from Eq. 5 samples (diffuse only, read noise sigma 0.02, green and blue at
+    about 1 and 0.5 sigma) with and without ``clip_correction``: the bias (largest |median signed
+    relative error| of the two dark channels) and the median |relative error| (mostly the noise of
+    ~20 samples a point)."""
+    sc, poses, _, tables, _ = scene
+    D0 = tables.D(sc.normals).astype(np.float64)
+    sigma = 0.02
+    rho = 0.54 * np.array([1.0, 0.04, 0.02])[None] / np.maximum(D0.mean(1, keepdims=True), 1e-6)
+    out = {}
+    for corr in (False, True):
+        t0 = time.perf_counter()
+        rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=tables, clip_correction=corr,
+                     specular=[False] * len(sc.alphas))
+        rng = np.random.default_rng(seed + 17)
+        for T in poses:
+            C = T[:3, 3]
+            wo = C - sc.positions
+            wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+            vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
+            rp.add_samples(vis, np.maximum(D0[vis] * rho[vis] + rng.normal(0, sigma, (len(vis), 3)), 0.0), C)
+        res = rp.result()
+        ms = 1e3 * (time.perf_counter() - t0)
+        ok = res.observed & (res.counts >= 8)
+        rel = res.rho_d[ok, 1:] / rho[ok, 1:] - 1
+        signed = np.median(rel, axis=0)
+        out[corr] = {"ms": ms, "median_rel_err": float(np.median(np.abs(rel))),
+                     "median_signed": [round(float(v), 4) for v in signed], "bias": float(np.abs(signed).max())}
+    return out
+
+
 def _update_scene(quick: bool, seed: int, tables: DoubleProductTables):
     """The 100k-point sphere filling a 640 x 480 view and its frames (RGB, depth, pose) for
     :func:`update_rate`; rendered once and shared by the rate's variants."""
@@ -231,6 +263,13 @@ def run(ctx) -> dict[str, float | None]:
                       note="RGB registration: project points (default) or register every depth pixel to its "
                            "nearest point (paper). time = CPU ms per 640x480 frame of a 100k-point sphere; "
                            "error = largest rho_s rel. error on the two-material sphere")
+    dark = clipped_dark(ctx.seed, scene)
+    extra["clipped_dark"] = {str(k): v for k, v in dark.items()}
+    ctx.add_sweep("rho_d_clip_correction", "rho_d_dark_bias", True,
+                  [{"value": k, "ms_per_frame": v["ms"], "error": v["bias"]} for k, v in dark.items()],
+                  note="rho_d of channels 1 and 0.5 noise widths above black, the noise clipped at 0, with and "
+                       "without the zero-fraction correction (docs/rgb-pass.md §5h). time = ms for the whole "
+                       "sweep of samples; error = the dark channels' bias (largest |median signed rel. error|)")
     ctx.add_sweep("rho_d_pool_k", "rho_d_median_rel_err", 32,
                   [{"value": k, "ms_per_frame": t, "error": e} for k, (t, e) in ps.pop("rho_d_pool").items()],
                   note="rho_d pooled with the k nearest points of its cluster that agree within 2.5 standard "
@@ -240,7 +279,8 @@ def run(ctx) -> dict[str, float | None]:
     return {"double_product_rel_err": dp["rel_rms"], "wavelet_tables_mb": dp["tables_mb"],
             "wavelet_build_s": dp["build_cpu_s"], "rho_d_median_rel_err": ps["rho_d_median_rel_err"],
             "rho_s_rel_err": ps["rho_s_max_abs"], "fps_rgb_update": rate["fps_cpu"],
-            "fps_rgb_update_near_field": rate_nf["fps_cpu"]}
+            "fps_rgb_update_near_field": rate_nf["fps_cpu"],
+            "rho_d_dark_bias": dark[True]["bias"]}
 
 
 if __name__ == "__main__":  # pragma: no cover
