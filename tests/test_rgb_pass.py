@@ -654,26 +654,34 @@ def test_clipped_mean_factor_recovers_the_mean_of_noise_clipped_at_black():
     assert np.all(np.diff(clipped_mean_factor(f)) <= 0) and np.isfinite(clipped_mean_factor(f)).all()
 
 
+def _clipped_run(sphere_run, rho_channels, corr, seed, rho_s=None):
+    """An RGBPass fed Eq. 5 samples of the sphere with read noise 0.02 clipped at 0: diffuse rho_d of
+    ``rho_channels`` times 0.54 / mean D (channel 0 bright, the others near black), plus ``rho_s``
+    (C, 3) times S when given (else diffuse-only clusters). Returns (result, truth rho_d)."""
+    sc, poses, _, rp0, _ = sphere_run
+    D0 = rp0.tables.D(sc.normals).astype(np.float64)
+    rho = 0.54 * np.asarray(rho_channels, float)[None] / np.maximum(D0.mean(1, keepdims=True), 1e-6)
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, estimator="lsq",
+                 clip_correction=corr, specular=None if rho_s is not None else [False] * len(sc.alphas))
+    rng = np.random.default_rng(seed)
+    for T in poses:
+        C = T[:3, 3]
+        wo = C - sc.positions
+        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
+        L = D0[vis] * rho[vis] + rng.normal(0, 0.02, (len(vis), 3))
+        if rho_s is not None:
+            L += rp0.tables.S(sc.normals[vis], wo[vis], sc.alphas[sc.labels[vis]]).astype(np.float64) * rho_s[sc.labels[vis]]
+        rp.add_samples(vis, np.maximum(L, 0.0), C)
+    return rp.result(), rho
+
+
 def test_lsq_rho_d_corrects_noise_clipped_at_black(sphere_run):
     """Dark channels a noise width above black: the clipped noise biases the plain mean high; the
     zero-fraction correction (clip_correction, default) removes the bias, a bright channel is untouched."""
-    sc, poses, _, rp0, _ = sphere_run
-    D0 = rp0.tables.D(sc.normals).astype(np.float64)
-    sigma = 0.02
-    rho = np.array([0.6, 0.6, 0.6])[None] * np.array([1.0, 0.04, 0.02])[None] / np.maximum(D0.mean(1, keepdims=True), 1e-6) * 0.9
     est = {}
     for corr in (False, True):
-        rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
-                     estimator="lsq", clip_correction=corr, specular=[False, False])
-        rng = np.random.default_rng(11)
-        for T in poses:
-            C = T[:3, 3]
-            wo = C - sc.positions
-            wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-            vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
-            L = np.maximum(D0[vis] * rho[vis] + rng.normal(0, sigma, (len(vis), 3)), 0.0)
-            rp.add_samples(vis, L, C)
-        res = rp.result()
+        res, rho = _clipped_run(sphere_run, (1.0, 0.04, 0.02), corr, seed=11)
         ok = res.observed & (res.counts >= 8)
         est[corr] = np.median(res.rho_d[ok] / rho[ok] - 1, axis=0)
         print(f"clip_correction={corr}: median signed rel err per channel {np.round(est[corr], 4)}")
@@ -688,25 +696,10 @@ def test_clip_correction_with_a_specular_lobe(sphere_run):
     """With a specular lobe on top, the highlight samples are never clipped and are taken out whole
     by rho_s S; the correction scales what is left (the diffuse level). The highlights dilute the
     zero fraction, so it corrects a little less than without them; rho_s is not touched."""
-    sc, poses, _, rp0, _ = sphere_run
-    D0 = rp0.tables.D(sc.normals).astype(np.float64)
-    sigma = 0.02
-    rho = 0.54 * np.array([1.0, 0.04, 0.025])[None] / np.maximum(D0.mean(1, keepdims=True), 1e-6)
     rho_s = np.array([[0.1, 0.1, 0.1], [0.1, 0.1, 0.1]])
     est, rs = {}, {}
     for corr in (False, True):
-        rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables,
-                     estimator="lsq", clip_correction=corr)
-        rng = np.random.default_rng(12)
-        for T in poses:
-            C = T[:3, 3]
-            wo = C - sc.positions
-            wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-            vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
-            S = rp0.tables.S(sc.normals[vis], wo[vis], sc.alphas[sc.labels[vis]]).astype(np.float64)
-            L = D0[vis] * rho[vis] + S * rho_s[sc.labels[vis]] + rng.normal(0, sigma, (len(vis), 3))
-            rp.add_samples(vis, np.maximum(L, 0.0), C)
-        res = rp.result()
+        res, rho = _clipped_run(sphere_run, (1.0, 0.04, 0.025), corr, seed=12, rho_s=rho_s)
         ok = res.observed & (res.counts >= 8)
         est[corr] = np.median(res.rho_d[ok] / rho[ok] - 1, axis=0)
         print(f"clip_correction={corr}: rho_s {np.round(res.rho_s, 3).tolist()}, median signed rho_d err "
