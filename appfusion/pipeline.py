@@ -53,8 +53,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: roughness; 20: the normal filter's stages run only while it converges; 21: refuse_voxel_scale in
 #: the configuration; 22: specular normal refinement, its normals saved with the RGB stage; 23: normals
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
-#: configuration; 24: rho_d corrected for the noise clipped at black)
-CHECKPOINT_VERSION = 24
+#: configuration; 24: rho_d corrected for the noise clipped at black; 25: the colour split only where
+#: the lobe varies)
+CHECKPOINT_VERSION = 25
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 

@@ -260,6 +260,28 @@ def test_split_by_specular_finds_the_material_the_ir_merged(sphere_run):
     assert rp.n_clusters == 2
 
 
+def test_split_needs_the_lobe_to_vary_where_it_splits(sphere_run):
+    """A neighbourhood whose views barely vary the cluster's lobe term rho_s S says nothing about the
+    lobe (the vase's underside, facing the paper): with ``min_lobe_sd`` above the largest spread of
+    that term per sample the same sums do not split; at the default they do."""
+    sc, poses, _, rp0, _ = sphere_run
+    alpha = np.array([float(sc.alphas[0])])
+    rs_true = np.repeat(np.where(sc.labels == 1, 0.4, 0.01)[:, None], 3, axis=1)
+
+    def fed():
+        rp = RGBPass(sc.positions, sc.normals, np.zeros(len(sc.positions), np.int64), alpha, sc.env, tables=rp0.tables)
+        for vis, L, C in _model_samples(sc, poses, rp0.tables, np.full(len(sc.labels), alpha[0]), rs_true,
+                                        np.random.default_rng(12), 0.02):
+            rp.add_samples(vis, L, C)
+        return rp
+
+    rp = fed()
+    use, n, _, v_ss, _ = rp._within_point_moments(3)
+    spread = rp.result().rho_s.mean() * np.sqrt(v_ss.sum(1)[use] / (3 * (n[use, 0] - 1)))
+    assert rp.split_by_specular(min_lobe_sd=1.01 * spread.max()) == [] and rp.n_clusters == 1
+    assert len(fed().split_by_specular()) == 1 and np.median(spread) > 0.001
+
+
 def test_repeated_points_in_one_call_equal_separate_calls(sphere_run):
     sc = sphere_run[0]
     C = np.array([0.3, 0.2, 0.4])
