@@ -54,12 +54,11 @@ def _stored_terms(sc, rp, stored):
 def _model_samples(sc, poses, tables, point_alpha, point_rho_s, rng, noise):
     """Per pose: (visible points, Eq. 5 radiance with relative noise, camera centre), clear of the
     grazing, dark and saturated cut-offs."""
+    from appfusion.bench.stages.rgb import facing_points
+
     D0 = tables.D(sc.normals).astype(np.float64)
     for T in poses:
-        C = T[:3, 3]
-        wo = C - sc.positions
-        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
+        C, wo, vis = facing_points(sc, T)
         S0 = tables.S(sc.normals[vis], wo[vis], point_alpha[vis]).astype(np.float64)
         L = (D0[vis] * sc.rho_d[vis] + S0 * point_rho_s[vis]) * rng.uniform(1 - noise, 1 + noise, (len(vis), 3))
         ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)
@@ -677,24 +676,19 @@ def test_clipped_mean_factor_recovers_the_mean_of_noise_clipped_at_black():
 
 
 def _clipped_run(sphere_run, rho_channels, corr, seed, rho_s=None):
-    """An RGBPass fed Eq. 5 samples of the sphere with read noise 0.02 clipped at 0: diffuse rho_d of
-    ``rho_channels`` times 0.54 / mean D (channel 0 bright, the others near black), plus ``rho_s``
-    (C, 3) times S when given (else diffuse-only clusters). Returns (result, truth rho_d)."""
+    """An RGBPass fed Eq. 5 samples of the sphere with read noise 0.02 clipped at 0 (the rgb bench's
+    :func:`clipped_samples`): diffuse rho_d of ``rho_channels`` times 0.54 / mean D (channel 0 bright,
+    the others near black), plus ``rho_s`` (C, 3) times S when given (else diffuse-only clusters).
+    Returns (result, truth rho_d)."""
+    from appfusion.bench.stages.rgb import clipped_samples
+
     sc, poses, _, rp0, _ = sphere_run
     D0 = rp0.tables.D(sc.normals).astype(np.float64)
     rho = 0.54 * np.asarray(rho_channels, float)[None] / np.maximum(D0.mean(1, keepdims=True), 1e-6)
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, estimator="lsq",
                  clip_correction=corr, specular=None if rho_s is not None else [False] * len(sc.alphas))
-    rng = np.random.default_rng(seed)
-    for T in poses:
-        C = T[:3, 3]
-        wo = C - sc.positions
-        wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-        vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
-        L = D0[vis] * rho[vis] + rng.normal(0, 0.02, (len(vis), 3))
-        if rho_s is not None:
-            L += rp0.tables.S(sc.normals[vis], wo[vis], sc.alphas[sc.labels[vis]]).astype(np.float64) * rho_s[sc.labels[vis]]
-        rp.add_samples(vis, np.maximum(L, 0.0), C)
+    for vis, L, C in clipped_samples(sc, poses, rp0.tables, rho, np.random.default_rng(seed), rho_s=rho_s):
+        rp.add_samples(vis, L, C)
     return rp.result(), rho
 
 

@@ -146,28 +146,46 @@ def point_set(quick: bool, seed: int, registration: str = "points", scene=None) 
             "_scene": (sc, poses, frames, rp.tables, render_s)}
 
 
+def facing_points(sc, pose: np.ndarray, min_cos: float = 0.3):
+    """Camera centre (3,) of ``pose`` (camera to world), unit view directions ``w_o`` (P, 3) from the
+    scene's points to it, and the indices of the points facing it (``n . w_o > min_cos``)."""
+    C = pose[:3, 3]
+    wo = C - sc.positions
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    return C, wo, np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > min_cos)
+
+
+def clipped_samples(sc, poses, tables, rho_d: np.ndarray, rng: np.random.Generator, sigma: float = 0.02,
+                    rho_s: np.ndarray | None = None):
+    """Per pose of ``poses``: (the sphere's points facing the camera, ``n . w_o > 0.3``; their Eq. 5
+    radiance ``D rho_d`` (+ ``S rho_s`` of their cluster when ``rho_s`` (C, 3) is given) plus Gaussian
+    read noise ``sigma``, clipped at 0 as a sensor clips it; the camera centre). D and S from
+    ``tables``. Shared with the tests of the clip correction (docs/rgb-pass.md §5h)."""
+    D0 = tables.D(sc.normals).astype(np.float64)
+    for T in poses:
+        C, wo, vis = facing_points(sc, T)
+        L = D0[vis] * rho_d[vis] + rng.normal(0, sigma, (len(vis), 3))
+        if rho_s is not None:
+            L += tables.S(sc.normals[vis], wo[vis], sc.alphas[sc.labels[vis]]).astype(np.float64) * rho_s[sc.labels[vis]]
+        yield vis, np.maximum(L, 0.0), C
+
+
 def clipped_dark(seed: int, scene) -> dict[str, Any]:
     """Dark channels a noise width above black, the noise clipped at 0 (docs/rgb-pass.md §5h): rho_d of
-    the sphere's points from Eq. 5 samples (diffuse only, read noise sigma 0.02, green and blue at
-    about 1 and 0.5 sigma) with and without ``clip_correction``: the bias (largest |median signed
-    relative error| of the two dark channels) and the median |relative error| (mostly the noise of
-    ~20 samples a point)."""
+    the sphere's points from Eq. 5 samples (:func:`clipped_samples`: diffuse only, read noise sigma
+    0.02, green and blue at about 1 and 0.5 sigma) with and without ``clip_correction``: the bias
+    (largest |median signed relative error| of the two dark channels) and the median |relative
+    error| (mostly the noise of ~20 samples a point)."""
     sc, poses, _, tables, _ = scene
     D0 = tables.D(sc.normals).astype(np.float64)
-    sigma = 0.02
     rho = 0.54 * np.array([1.0, 0.04, 0.02])[None] / np.maximum(D0.mean(1, keepdims=True), 1e-6)
     out = {}
     for corr in (False, True):
         t0 = time.perf_counter()
         rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=tables, clip_correction=corr,
                      specular=[False] * len(sc.alphas))
-        rng = np.random.default_rng(seed + 17)
-        for T in poses:
-            C = T[:3, 3]
-            wo = C - sc.positions
-            wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-            vis = np.flatnonzero(np.einsum("ij,ij->i", sc.normals, wo) > 0.3)
-            rp.add_samples(vis, np.maximum(D0[vis] * rho[vis] + rng.normal(0, sigma, (len(vis), 3)), 0.0), C)
+        for vis, L, C in clipped_samples(sc, poses, tables, rho, np.random.default_rng(seed + 17)):
+            rp.add_samples(vis, L, C)
         res = rp.result()
         ms = 1e3 * (time.perf_counter() - t0)
         ok = res.observed & (res.counts >= 8)
