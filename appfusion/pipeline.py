@@ -395,6 +395,24 @@ def _read_npz(path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
+def _stack_images(images: list | None) -> np.ndarray:
+    """Per-cluster images (each (n, n) or None) as one (k, n, n) float32 array for a checkpoint; a
+    missing image is all NaN; no images at all: shape (0, 0, 0)."""
+    imgs = [None if im is None else np.asarray(im, np.float32) for im in (images or [])]
+    shapes = {im.shape for im in imgs if im is not None}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        return np.zeros((0, 0, 0), np.float32)
+    shape = shapes.pop()
+    return np.stack([np.full(shape, np.nan, np.float32) if im is None else im for im in imgs])
+
+
+def _unstack_images(stack: np.ndarray | None) -> list:
+    """Inverse of :func:`_stack_images`: a list with None for the all-NaN images ([] for none)."""
+    if stack is None or stack.ndim != 3 or not len(stack):
+        return []
+    return [None if not np.isfinite(im).any() else im for im in stack]
+
+
 class ScanRunner:
     """Runs a whole scan over one source; the GUI and the CLI drive it.
 
@@ -674,6 +692,24 @@ class ScanRunner:
         self._note(f"{stage}: reusing the checkpointed {what}")
         return obj
 
+    def _done_info(self, stage: str) -> dict:
+        """What :meth:`_mark_done` stored beside a stage's key ({} when unreadable)."""
+        try:
+            info = json.loads((self.state_dir / f"{stage}.done").read_text())
+        except (OSError, ValueError):
+            return {}
+        return info if isinstance(info, dict) else {}
+
+    def _restore_history(self, stage: str, key: str) -> list:
+        """The live sweep's running estimates ``history[key]`` that a checkpointed stage kept, back into
+        the snapshot (the report's convergence curves of a resumed scan); returns them ([] if none)."""
+        h = (self._done_info(stage).get("history") or {}).get(key)
+        if not isinstance(h, list):
+            return []
+        hist = self._snap.history
+        hist[key] = [(int(f), v) for f, v in h if isinstance(f, (int, float))]
+        return hist[key]
+
     def _mark_done(self, stage: str, info: dict | None = None) -> None:
         self.state_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.state_dir / f"{stage}.done.tmp"
@@ -931,7 +967,12 @@ class ScanRunner:
         if ir_arrays is not None:
             self._ir_result = ir_arrays
             leaf = self._ir_result.pop("leaf_hbsab", None)
-            self._publish(force=True, labels=self._ir_result["labels"], alpha=self._ir_result["alpha"])
+            hb = _unstack_images(self._ir_result.pop("hbsab_images", None))
+            fits = _unstack_images(self._ir_result.pop("hbsab_fit_images", None))
+            self._restore_history("ir", "alpha")
+            extra = {"hbsabs": hb, "hbsab_fits": fits} if hb else {}
+            self._publish(force=True, labels=self._ir_result["labels"], alpha=self._ir_result["alpha"],
+                          history=self._snap.history, **extra)
             if leaf is not None and self.ir_profile is not None and self.points is not None:
                 # the BRDF cut's leaf buffers come back, so that the colour pass can refit the lobes
                 # of its clusters as in an uninterrupted scan (the tree is rebuilt from the points)
@@ -966,9 +1007,13 @@ class ScanRunner:
         res = self.ir.result(fit=True)
         self._publish_ir(res, used, force=True)
         self._ir_result = self._ir_arrays(res)
-        # the leaf HBSABs too (constant size: leaves x channels x texels), for a resumed scan's refits
-        self._save_npz("ir", **self._ir_result, leaf_hbsab=self.ir.cut.leaves.data)
-        self._mark_done("ir", {"frames": used, "k": res.k, "k_auto": res.k_auto, "notes": res.notes})
+        # the leaf HBSABs too (constant size: leaves x channels x texels), for a resumed scan's refits,
+        # and what the report shows of this stage: the clusters' HBSABs, their fits, the running alphas
+        snap = self._snap
+        self._save_npz("ir", **self._ir_result, leaf_hbsab=self.ir.cut.leaves.data,
+                       hbsab_images=_stack_images(snap.hbsabs), hbsab_fit_images=_stack_images(snap.hbsab_fits))
+        self._mark_done("ir", {"frames": used, "k": res.k, "k_auto": res.k_auto, "notes": res.notes,
+                               "history": {"alpha": snap.history.get("alpha", [])}})
         al = ", ".join(f"{a:.3f}" for a in self._ir_result["alpha"])
         self._note(f"ir: {res.k} specular cluster(s){' (automatic k)' if res.k_auto else ''}, alpha = {al}")
 
@@ -1047,6 +1092,8 @@ class ScanRunner:
             self._rgb_result = rgb_arrays
             if "normals" in rgb_arrays and self.points is not None:     # refined (_refine_normals)
                 self.points = (self.points[0], np.asarray(rgb_arrays["normals"], np.float32))
+            if self._restore_history("rgb", "rho_s"):
+                self._publish(force=True, history=self._snap.history)
             return
         P, N = self.points
         labels = self._current_labels()
@@ -1115,7 +1162,7 @@ class ScanRunner:
                                                                    if m == "diffuse" else ")")
                 for c, (m, (a, b), w, z) in enumerate(zip(r.model, r.heldout_rss, ward, zs))))
         self._save_npz("rgb", **self._rgb_result)
-        self._mark_done("rgb", {"frames": used})
+        self._mark_done("rgb", {"frames": used, "history": {"rho_s": self._snap.history.get("rho_s", [])}})
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
         self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
                    + "; ".join(", ".join(f"{v:.3f}" for v in row) for row in self._rgb_result["rho_s"]))

@@ -43,6 +43,38 @@ def test_a_scan_stopped_midway_resumes_from_its_checkpoints(kinect_sphere, tmp_p
     assert json.loads(key)["engine"] == CHECKPOINT_VERSION
 
 
+def test_a_scan_rerun_on_its_checkpoints_keeps_the_reports_curves_and_hbsabs(kinect_sphere, tmp_path):
+    """The checkpoints keep what the report shows of the IR and colour stages: the live sweeps'
+    running alpha and rho_s (convergence curves) and the clusters' HBSABs with their fits. Before
+    session 25 a rerun that reused every stage drew the exported markers alone and no HBSAB figure."""
+    out = tmp_path / "scan"
+    r1, _ = _run(kinect_sphere, out)
+    h1, s1 = r1.snapshot().history, r1.snapshot()
+    assert h1.get("alpha") and h1.get("rho_s") and s1.hbsabs
+    r2, _ = _run(kinect_sphere, out)
+    assert any("ir: reusing the checkpointed clusters" in m for m in r2.messages)
+    assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
+    s2 = r2.snapshot()
+    for key in ("alpha", "rho_s"):
+        assert [f for f, _ in s2.history[key]] == [f for f, _ in h1[key]]
+        for (_, a), (_, b) in zip(s2.history[key], h1[key]):
+            np.testing.assert_allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-6)
+    assert len(s2.hbsabs) == len(s1.hbsabs)
+    for a, b in zip(s2.hbsabs + s2.hbsab_fits, s1.hbsabs + s1.hbsab_fits):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_allclose(a, b, rtol=1e-6)
+    r2.export()
+    html = (out / "report.html").read_text()
+    assert "report/hbsabs.png" in html and "report/convergence.png" in html
+    # a checkpoint of an older engine (no history, no images) still resumes: markers alone, as before
+    info = json.loads((out / "state" / "rgb.done").read_text())
+    info.pop("history")
+    (out / "state" / "rgb.done").write_text(json.dumps(info))
+    r3, _ = _run(kinect_sphere, out)
+    assert "rho_s" not in r3.snapshot().history and r3.snapshot().history.get("alpha")
+
+
 def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect_sphere, tmp_path):
     import pytest
 
