@@ -67,8 +67,15 @@ def detect_format(path: str | os.PathLike) -> str:
         return "session"
     if (p / "rgb.txt").is_file() or (p / "depth.txt").is_file():
         return "tum"  # with one index missing, TUMReader says which
-    if (p / "depth").is_dir() and any((p / c).is_dir() for c in ("color", "rgb", "image")):
+    colour = [c for c in ("color", "rgb", "image") if (p / c).is_dir()]
+    if (p / "depth").is_dir() and colour:
         return "redwood"
+    if (p / "depth").is_dir() or colour:
+        # half of a Redwood/Open3D folder: name the missing half rather than "no known format"
+        has, missing = ((f"{colour[0]}/", "depth/ (the depth images)") if colour else
+                        ("depth/", "color/ (or rgb/, image/: the colour images)"))
+        raise UnknownFormatError(f"{p}: has {has} but no {missing} sub-folder: not a complete Redwood/Open3D "
+                                 f"folder (known formats: {_known()})")
     raise UnknownFormatError(f"{p}: a directory of no known recording format (known formats: {_known()})")
 
 

@@ -261,6 +261,14 @@ def test_detect_format_errors(tmp_path):
         open_recording(tmp_path / "x.bag")
     with pytest.raises(UnknownFormatError, match="a directory of no known recording format"):
         open_recording(tmp_path)
+    # half a Redwood/Open3D folder: the error names the missing sub-folder
+    (tmp_path / "half" / "color").mkdir(parents=True)
+    with pytest.raises(UnknownFormatError, match=r"half: has color/ but no depth/ \(the depth images\) sub-folder"):
+        open_recording(tmp_path / "half")
+    (tmp_path / "half" / "color").rmdir()
+    (tmp_path / "half" / "depth").mkdir()
+    with pytest.raises(UnknownFormatError, match=r"has depth/ but no color/ \(or rgb/, image/"):
+        open_recording(tmp_path / "half")
     assert issubclass(UnknownFormatError, AppFusionError)
 
 
