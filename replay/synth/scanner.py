@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -423,12 +424,14 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     if workers is None:
         workers = 2 if (os.cpu_count() or 1) >= 2 and n_total * w * h >= 40 * 320 * 240 else 1
     pool = None
+    tmp_lcache = None                    # a light-transport cache made for the workers alone: removed at the end
     if workers > 1:
         import tempfile
         from concurrent.futures import ProcessPoolExecutor
 
         # workers rebuild the scenes and load the precomputed light transport from a cache
         lcache = Path(cache_dir) if cache_dir is not None else Path(tempfile.mkdtemp(prefix="synth-lighting-"))
+        tmp_lcache = None if cache_dir is not None else lcache
         for key in ("env", "obj"):
             scenes[key].save_lighting(lcache)
         spec = {"scene": scene, "detail": detail, "seed": seed, "quality": quality.to_json(), "size": (w, h),
@@ -466,6 +469,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+        if tmp_lcache is not None:
+            shutil.rmtree(tmp_lcache, ignore_errors=True)
 
     # -- truth ----------------------------------------------------------------------------------------
     truth = out / "truth"
