@@ -233,6 +233,8 @@ def export_result(result: ScanResult, out_dir: str | os.PathLike, texture_size: 
         "appfusion": {"model": "rho_d/pi + rho_s * Ward(alpha), Ward 1992 isotropic",
                       "rho_s": result.rho_s.tolist(), "alpha": result.alpha.tolist(),
                       "alpha_sigma": result.alpha_sigma.tolist(),
+                      "rho_s_sigma": [[None if not np.isfinite(v) else float(v) for v in row]
+                                      for row in result.rho_s_sigma],
                       "roughness_mapping": "gltf_roughness = sqrt(ward_alpha)"}}
     glb = out / "object.glb"
     glb.write_bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene(tm), include_normals=True))

@@ -1152,6 +1152,8 @@ class ScanRunner:
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
                             "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
+        if r.rho_s_sigma is not None:
+            self._rgb_result["rho_s_sigma"] = np.asarray(r.rho_s_sigma, np.float32)
         if self.config.normal_refine_rounds > 0:
             self._refine_normals(start, stop, pass_name)
         if r.heldout_rss is not None:
@@ -1164,8 +1166,12 @@ class ScanRunner:
         self._save_npz("rgb", **self._rgb_result)
         self._mark_done("rgb", {"frames": used, "history": {"rho_s": self._snap.history.get("rho_s", [])}})
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
+        sig = self._rgb_result.get("rho_s_sigma")
         self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
-                   + "; ".join(", ".join(f"{v:.3f}" for v in row) for row in self._rgb_result["rho_s"]))
+                   + "; ".join(", ".join(f"{v:.3f}" for v in row)
+                               + (f" (± {', '.join(f'{e:.2g}' for e in sig[c])})"
+                                  if sig is not None and c < len(sig) and np.isfinite(sig[c]).all() else "")
+                               for c, row in enumerate(self._rgb_result["rho_s"])))
 
     def _refine_normals(self, start: int, stop: int, pass_name: str) -> None:
         """Specular normal refinement (:mod:`appfusion.normal_refine`): ``normal_refine_rounds`` more
@@ -1514,10 +1520,14 @@ class ScanRunner:
                 sigma[:m] = np.where(np.isfinite(rs), rs, sigma[:m])
             model[:m] = ["ward"] * m
         rho_s = np.zeros((k, 3), np.float32)
+        rho_s_sigma = np.full((k, 3), np.nan, np.float32)
         rho_d = np.full((len(P), 3), 0.5, np.float32)
         if rgb is not None:
             m = min(k, len(rgb["rho_s"]))
             rho_s[:m] = np.maximum(rgb["rho_s"][:m], 0)
+            if "rho_s_sigma" in rgb:
+                ms = min(k, len(rgb["rho_s_sigma"]))
+                rho_s_sigma[:ms] = rgb["rho_s_sigma"][:ms]
             rho_d = np.clip(np.nan_to_num(rgb["rho_d"], nan=0.5), 0, None)
         if rgb is not None and "model" in rgb:             # the RGB pass's held-out model ladder
             for c, mm in enumerate(np.asarray(rgb["model"]).tolist()[:k]):
@@ -1529,7 +1539,8 @@ class ScanRunner:
                 "rho_d_source": "rgb pass (Eq. 6)" if rgb is not None else "not estimated (0.5 grey)",
                 "alpha_source": "ir pass (§5.1)" if ir is not None else "not estimated (0.3)"}
         return ScanResult(P, N, rho_d, labels, rho_s, alpha, sigma, mesh_vertices=V, mesh_faces=F,
-                          envmap=None if self.env is None else self.env.radiance, model=model, info=info)
+                          envmap=None if self.env is None else self.env.radiance, model=model, info=info,
+                          rho_s_sigma=rho_s_sigma)
 
     # -- running ---------------------------------------------------------------------------------------
     def run(self):

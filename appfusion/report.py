@@ -79,6 +79,12 @@ def fig_envmap(env: np.ndarray, path: Path, coverage: np.ndarray | None = None) 
     return path
 
 
+def _sigma_cell(sig) -> str:
+    """A cluster's rho_s standard errors for the materials table ("—" where unknown)."""
+    sig = np.asarray(sig, float)
+    return ", ".join(f"{v:.4f}" for v in sig) if np.isfinite(sig).all() else "—"
+
+
 def fig_convergence(history: dict[str, list], path: Path, final: dict | None = None) -> Path:
     """alpha and rho_s per cluster against the number of frames used.
 
@@ -192,6 +198,7 @@ def write_report(out_dir: str | os.PathLike, result: ScanResult, *, title: str =
     for c in range(result.n_clusters):
         rows.append(f"<tr><td>{c}</td><td>{html.escape(result.model[c])}</td><td>{result.alpha[c]:.4f} ± "
                     f"{result.alpha_sigma[c]:.4f}</td><td>{', '.join(f'{v:.4f}' for v in result.rho_s[c])}</td>"
+                    f"<td>{_sigma_cell(result.rho_s_sigma[c])}</td>"
                     f"<td>{int(np.sum(result.labels == c))}</td></tr>")
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
@@ -200,7 +207,7 @@ def write_report(out_dir: str | os.PathLike, result: ScanResult, *, title: str =
     for n in notes or []:
         parts.append(f"<p>{html.escape(n)}</p>")
     parts.append("<h2>Materials (paper Eq. 1: rho_d/pi + rho_s Ward(alpha))</h2><table><tr><th>cluster</th>"
-                 "<th>model</th><th>alpha</th><th>rho_s (RGB)</th><th>points</th></tr>" + "".join(rows) + "</table>")
+                 "<th>model</th><th>alpha</th><th>rho_s (RGB)</th><th>rho_s standard error</th><th>points</th></tr>" + "".join(rows) + "</table>")
     for t, table in (tables or {}).items():
         parts.append(f"<h2>{html.escape(t)}</h2><table>")
         for k, v in table.items():

@@ -43,6 +43,9 @@ class ScanResult:
         Reflectance model chosen per cluster ("diffuse", "ward").
     info : dict
         Free-form provenance (session, frames used per pass, timings).
+    rho_s_sigma : (C, 3) float32
+        Standard error of each cluster's rho_s as measured (the Ward rung's slope, also for a cluster
+        exported as diffuse); NaN where unknown (not measured, or a result saved before session 25).
     """
 
     positions: np.ndarray
@@ -57,6 +60,7 @@ class ScanResult:
     envmap: np.ndarray | None = None
     model: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    rho_s_sigma: np.ndarray = None
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, np.float32).reshape(-1, 3)
@@ -68,14 +72,17 @@ class ScanResult:
         if self.alpha_sigma is None:
             self.alpha_sigma = np.zeros_like(self.alpha)
         self.alpha_sigma = np.asarray(self.alpha_sigma, np.float32).reshape(-1)
+        if self.rho_s_sigma is None:
+            self.rho_s_sigma = np.full(self.rho_s.shape, np.nan, np.float32)
+        self.rho_s_sigma = np.asarray(self.rho_s_sigma, np.float32).reshape(-1, 3)
         if not self.model:
             self.model = ["ward"] * len(self.alpha)
         P, C = len(self.positions), len(self.alpha)
         for name, a in (("normals", self.normals), ("rho_d", self.rho_d), ("labels", self.labels)):
             if len(a) != P:
                 raise ValueError(f"ScanResult: {name} has {len(a)} rows, positions has {P}")
-        if len(self.rho_s) != C or len(self.alpha_sigma) != C:
-            raise ValueError(f"ScanResult: rho_s/alpha_sigma must have one row per cluster ({C})")
+        if len(self.rho_s) != C or len(self.alpha_sigma) != C or len(self.rho_s_sigma) != C:
+            raise ValueError(f"ScanResult: rho_s/alpha_sigma/rho_s_sigma must have one row per cluster ({C})")
         if P and (self.labels.min() < 0 or self.labels.max() >= C):
             raise ValueError(f"ScanResult: labels must lie in 0..{C - 1}")
 

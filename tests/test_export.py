@@ -39,6 +39,17 @@ def test_result_roundtrip(tmp_path):
     assert back.info["session"] == "x" and back.envmap is None
     with pytest.raises(ValueError, match="labels"):
         ScanResult(r.positions, r.normals, r.rho_d, r.labels + 5, r.rho_s, r.alpha)
+    # rho_s's standard error: NaN where unknown, kept through save/load, shown in the report's table
+    assert r.rho_s_sigma.shape == (2, 3) and np.isnan(r.rho_s_sigma).all() and np.isnan(back.rho_s_sigma).all()
+    r.rho_s_sigma = np.array([[np.nan] * 3, [0.002, 0.0021, 0.0025]], np.float32)
+    back = ScanResult.load(r.save(tmp_path / "result.npz"))
+    np.testing.assert_array_equal(back.rho_s_sigma, r.rho_s_sigma)
+    from appfusion.report import write_report
+
+    html = write_report(tmp_path, back).read_text()
+    assert "rho_s standard error" in html and "0.0020, 0.0021, 0.0025" in html and "—" in html
+    with pytest.raises(ValueError, match="rho_s_sigma"):
+        ScanResult(r.positions, r.normals, r.rho_d, r.labels, r.rho_s, r.alpha, rho_s_sigma=np.zeros((3, 3)))
 
 
 def test_export_writes_loadable_glb_obj_ply(tmp_path):

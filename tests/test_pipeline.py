@@ -48,10 +48,13 @@ def test_a_scan_rerun_on_its_checkpoints_keeps_the_reports_curves_and_hbsabs(kin
     running alpha and rho_s (convergence curves) and the clusters' HBSABs with their fits. Before
     session 25 a rerun that reused every stage drew the exported markers alone and no HBSAB figure."""
     out = tmp_path / "scan"
-    r1, _ = _run(kinect_sphere, out)
+    r1, res1 = _run(kinect_sphere, out)
     h1, s1 = r1.snapshot().history, r1.snapshot()
     assert h1.get("alpha") and h1.get("rho_s") and s1.hbsabs
-    r2, _ = _run(kinect_sphere, out)
+    # each cluster's rho_s carries its standard error, and the checkpoint keeps it
+    assert np.isfinite(res1.rho_s_sigma).all() and (res1.rho_s_sigma > 0).all(), res1.rho_s_sigma
+    r2, res2 = _run(kinect_sphere, out)
+    np.testing.assert_array_equal(res2.rho_s_sigma, res1.rho_s_sigma)
     assert any("ir: reusing the checkpointed clusters" in m for m in r2.messages)
     assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
     s2 = r2.snapshot()

@@ -207,6 +207,51 @@ def test_model_ladder_keeps_a_weak_lobe_the_held_out_points_significantly_prefer
     assert every.rho_s[weak].mean() > 2 * 0.03, every.rho_s
 
 
+def test_rho_s_standard_error_predicts_the_spread_over_noise_realisations(sphere_run):
+    """rho_s_sigma (a sandwich estimate over blocks of points) matches the spread of rho_s over
+    independent noise realisations when neighbouring points share their noise, as points sharing a
+    pixel do (~7 per pixel on the demo); taking each point as independent underestimates it."""
+    from appfusion.bench.stages.rgb import facing_points
+
+    sc, poses, _, rp0, _ = sphere_run
+    alpha, rs = sc.alphas[sc.labels], sc.rho_s[sc.labels]
+    D0 = rp0.tables.D(sc.normals).astype(np.float64)
+    group = np.unique(np.floor(sc.positions / 0.02).astype(np.int64), axis=0, return_inverse=True)[1].reshape(-1)
+    assert np.bincount(group).mean() > 4                         # several points share each noise value
+    views = []
+    for T in poses:
+        C, wo, vis = facing_points(sc, T)
+        L0 = D0[vis] * sc.rho_d[vis] + rp0.tables.S(sc.normals[vis], wo[vis], alpha[vis]) * rs[vis]
+        ok = (L0.max(axis=1) < 0.8) & (L0.max(axis=1) > 0.06)
+        views.append((vis[ok], L0[ok], C))
+    rng = np.random.default_rng(8)
+    est, sig, sig_points = [], [], []
+    for r in range(24):
+        rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, se_block_m=0.02)
+        for vis, L0, C in views:
+            z = rng.standard_normal((group.max() + 1, 3))
+            rp.add_samples(vis, L0 * (1 + 0.05 * z[group[vis]]), C)
+        res = rp.result()
+        est.append(res.rho_s_ward)
+        sig.append(res.rho_s_sigma)
+        if r == 0:                                                 # the same sums, every point its own block
+            rp.se_block_m, rp._se_voxel = 1e-5, None
+            sig_points = rp.result().rho_s_sigma
+    emp = np.std(est, axis=0, ddof=1).mean(axis=1)
+    pred = np.mean(sig, axis=0).mean(axis=1)
+    assert np.all((pred > 0.7 * emp) & (pred < 1.4 * emp)), (pred, emp)
+    print("rho_s sd over realisations", emp, "predicted", pred, "points alone", sig_points.mean(axis=1))
+    assert np.all(sig_points.mean(axis=1) < 0.8 * emp), (sig_points, emp)
+    assert np.isfinite(res.rho_s_sigma).all() and (res.rho_s_sigma > 0).all()
+    # the percentile estimator has no slope to put an error on
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, estimator="percentile")
+    for vis, L0, C in views[:4]:
+        rp.add_samples(vis, L0, C)
+    assert rp.result().rho_s_sigma is None
+    with pytest.raises(AppFusionError, match="se_block_m"):
+        RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, se_block_m=0.0)
+
+
 def test_diffuse_clusters_skip_their_tables(sphere_run):
     """A cluster flagged diffuse (the IR pass saw no lobe) gets no double-product table and rho_s 0;
     with every cluster diffuse only D is built."""
