@@ -15,6 +15,9 @@ Only evaluation reads ``truth/``; the engine never does. Metrics (names as in ``
   their true material, under the best one-to-one mapping of clusters to materials (Hungarian).
 - ``alpha_cluster_rel_err``, ``rho_s_rel_err``: worst relative error over clusters mapped to a glossy
   Ward material (rho_s: mean over RGB of the per-channel relative error).
+- ``rho_s_err_sigmas``: the same clusters' rho_s error in units of its own standard error
+  (``ScanResult.rho_s_sigma``; mean over RGB, worst cluster): about 1 when the error is the capture's
+  noise, NaN where no standard error was estimated.
 - ``alpha_sharpest_rel_err``: alpha error of the cluster mapped to the material with the most visible
   IR highlight (largest ``ir_rho_s / alpha^2``); a near-matte material's alpha is hardly determined.
 - ``envmap_median_rel_err``: median texel-wise relative error over covered, lit directions the capture can
@@ -161,7 +164,7 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
     mapping, acc = cluster_mapping(result.labels, fm)
     out["label_accuracy"] = acc
     out["cluster_to_material"] = mapping
-    a_err, s_err = [], []
+    a_err, s_err, z_err = [], [], []
     for c, mid in mapping.items():
         m = mats[mid]
         if m.get("lobe", "ward") != "ward" or max(m["rho_s"]) <= 0 or c >= result.n_clusters:
@@ -169,6 +172,9 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
         a_err.append(abs(result.alpha[c] - m["alpha"]) / m["alpha"])
         rs = np.asarray(m["rho_s"], float)
         s_err.append(float(np.mean(np.abs(result.rho_s[c] - rs) / rs)))
+        sig = np.asarray(result.rho_s_sigma[c], float)
+        if np.isfinite(sig).all() and (sig > 0).all():
+            z_err.append(float(np.mean(np.abs(result.rho_s[c] - rs) / sig)))
     out["alpha_cluster_rel_err"] = float(max(a_err)) if a_err else float("nan")
     # the material whose IR highlight is most visible (largest Ward peak ir_rho_s / alpha^2): a
     # near-matte material's alpha (the two-material label: rho_s 0.02, alpha 0.35, a lobe 7 % above its
@@ -182,6 +188,7 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
             out["alpha_sharpest_rel_err"] = float(min(abs(result.alpha[c] - mats[sharp]["alpha"]) / mats[sharp]["alpha"]
                                                       for c in cl))
     out["rho_s_rel_err"] = float(max(s_err)) if s_err else float("nan")
+    out["rho_s_err_sigmas"] = float(max(z_err)) if z_err else float("nan")
     keep = cp[:, 2] > 0.01
     trd = np.einsum("pk,pki->pi", bary, obj["rho_d"][tri])
     if "rgb pass" in str(result.info.get("rho_d_source", "rgb pass")) and keep.any():

@@ -446,6 +446,8 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     sw = e["skip_wavelet"]["scan_clusters"]
     if sw.get("saving") is not None:
         assert sw["nodes_built"] <= sw["nodes_total"] and sw["max_rel_diff"] < 5e-3
+    # the label's rho_s error also in units of its standard error (finite: every cluster has one)
+    assert math.isfinite(e["evaluation"]["rho_s_err_sigmas"]) and e["evaluation"]["rho_s_err_sigmas"] >= 0
     out = tmp_path / "scan"
     assert (out / "report.html").exists() and (out / "result.npz").exists() and (out / "metrics.json").exists()
     assert S.cached_session(tmp_path / "sessions", "two-material", 16, (320, 240), 0)[1] == 0.0

@@ -92,6 +92,7 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "scan_alpha_sharpest_rel_err": ("fraction", 0.05, "lower"),     # the material with a visible IR highlight
     "scan_ir_pattern_heldout_cv": ("fraction", None, "lower"),     # IR emitter pattern map, held-out spread
     "scan_relit_interior_rel_rmse": ("fraction", None, "lower"),   # relit without the 1-px silhouette band (diagnostic)
+    "scan_rho_s_err_sigmas": ("standard errors", None, "lower"),  # rho_s error over its own standard error (diagnostic)
     # "skip what the scene doesn't need": fraction of the run time saved by each skip (no goal; the
     # before / after figures and the error check are in extra and docs/performance.md)
     "skip_fusion_saving": ("fraction", None, "higher"),

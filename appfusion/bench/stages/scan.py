@@ -19,7 +19,8 @@ the synthetic scanner (``replay.synth``), and reports:
     ``scan_label_accuracy``, ``scan_alpha_cluster_rel_err``, ``scan_rho_d_median_rel_err``,
     ``scan_rho_s_rel_err``, ``scan_envmap_median_rel_err``; ``scan_relit_interior_rel_rmse``, the
     relit error without the pixels on either render's silhouette, a diagnostic with no goal of its
-    own: :mod:`appfusion.evaluate`). The per-stage metrics of the same names
+    own; ``scan_rho_s_err_sigmas``, the rho_s error in units of its own standard error, likewise:
+    :mod:`appfusion.evaluate`). The per-stage metrics of the same names
     without ``scan_`` stay measured by the stages' own generators; these are the same quantities after
     the whole chain.
 ``scan_ir_pattern_heldout_cv``
@@ -84,6 +85,7 @@ SCAN_METRICS = {
     "envmap_energy_rel_err": "scan_envmap_energy_rel_err",
     "alpha_sharpest_rel_err": "scan_alpha_sharpest_rel_err",
     "relit_interior_rel_rmse": "scan_relit_interior_rel_rmse",
+    "rho_s_err_sigmas": "scan_rho_s_err_sigmas",
 }
 #: ScanRunner methods timed per scan (stage name in the report)
 _TIMED = {"_stage_ir_calibration": "ir-calibration", "_stage_environment": "environment",
