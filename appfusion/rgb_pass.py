@@ -1205,8 +1205,8 @@ class RGBPass:
         (cubes of side ``se_block_m``, per cluster) and the blocks taken as independent (a sandwich,
         or cluster-robust, estimate): ``sigma = sqrt(sum_b (sum_{p in b} e_p)^2) / den``. On the demo's
         label, 4 mm blocks predict 0.0025-0.0028 per channel where the points alone would say
-        0.0012-0.0013; six captures of the same radiance with different sensor noise spread by
-        ``docs/rgb-pass.md`` §8's figures. Constant memory: it reads the running sums only.
+        0.0012-0.0014; six captures of the same radiance with different sensor noise spread by
+        0.0019-0.0028 (``docs/rgb-pass.md`` §5i). Constant memory: it reads the running sums only.
         """
         C = self.n_clusters
         sigma = np.full((C, 3), np.nan)
@@ -1215,9 +1215,7 @@ class RGBPass:
             return sigma
         if self._se_voxel is None:
             v = np.floor(self.positions.astype(np.float64) / self.se_block_m).astype(np.int64)
-            v -= v.min(axis=0)
-            span = v.max(axis=0) + 1
-            self._se_voxel = (v[:, 0] * span[1] + v[:, 1]) * span[2] + v[:, 2]
+            self._se_voxel = np.unique(v, axis=0, return_inverse=True)[1].reshape(-1)   # 0..n_voxels-1
         lab = self.labels[inner]
         r = np.where(ok, num / np.where(ok, den, 1.0), 0.0)
         e = cov[inner] - r[lab] * var[inner]
