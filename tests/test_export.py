@@ -106,3 +106,30 @@ def test_convergence_figure_marks_the_exported_values(tmp_path):
     b = np.asarray(Image.open(q).convert("RGB")).astype(int)
     assert orange > 20 and (np.abs(b - np.array([255, 127, 14])).sum(-1) < 60).sum() == 0
     fig_convergence({}, tmp_path / "e.png", final=final)             # no history: markers only
+
+
+def test_info_describes_a_scan_output_folder(tmp_path, capsys):
+    """`appfusion info OUT` on a scan's output: the materials with their standard errors (none where
+    unknown), the mesh, the files and the errors against truth; --json alike; a broken result.npz is
+    one clear error."""
+    import json
+
+    from appfusion.cli import main
+
+    r = _sphere_result(500)
+    r.rho_s_sigma = np.array([[np.nan] * 3, [0.002, 0.0021, 0.0025]], np.float32)
+    r.save(tmp_path / "result.npz")
+    (tmp_path / "metrics.json").write_text(json.dumps({"rho_s_rel_err": 0.0412, "cluster_to_material": {"0": 1}}))
+    assert main(["info", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "scan result" in out and "points      500" in out
+    assert "cluster 1: ward" in out and "rho_s 0.3000 ± 0.0020, 0.3000 ± 0.0021, 0.3000 ± 0.0025" in out
+    assert "cluster 0: ward" in out and "rho_s 0.0000, 0.0000, 0.0000" in out     # no standard error known
+    assert "against truth rho_s_rel_err 0.0412" in out and "result.npz" in out
+    assert main(["info", "--json", str(tmp_path / "result.npz")]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["clusters"][1]["rho_s_sigma"] == pytest.approx([0.002, 0.0021, 0.0025], rel=1e-5)
+    assert d["clusters"][0]["rho_s_sigma"] == [None, None, None] and d["metrics"]["rho_s_rel_err"] == 0.0412
+    (tmp_path / "result.npz").write_bytes(b"not a zip")
+    assert main(["info", str(tmp_path)]) == 2
+    assert "not a readable scan result" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""``appfusion info RECORDING``: describe any supported recording (session, TUM, Redwood, Azure MKV)."""
+"""``appfusion info PATH``: describe any supported recording (session, TUM, Redwood, Azure MKV), or the
+output folder of a scan (its materials with their uncertainties, mesh, files, errors against truth)."""
 
 from __future__ import annotations
 
@@ -10,12 +11,17 @@ import numpy as np
 
 
 def register(sub) -> None:
-    p = sub.add_parser("info", help="describe a recording (any supported format)",
+    p = sub.add_parser("info", help="describe a recording (any supported format) or a scan's output",
                        description="Prints a recording's format, device, streams with frame counts, rates and "
                                    "intrinsics, duration, scanning passes and the depth range of its first "
                                    "frame. Reads appfusion sessions, TUM RGB-D and Redwood/Open3D folders and "
-                                   "Azure Kinect .mkv files.")
-    p.add_argument("recording", type=Path, help="session directory, TUM/Redwood folder or .mkv file")
+                                   "Azure Kinect .mkv files. Given the output folder of `appfusion scan` (or "
+                                   "its result.npz), prints the captured materials instead: per cluster the "
+                                   "model, points, Ward alpha and rho_s with their standard errors, then the "
+                                   "mesh, the environment map, the files written and the errors against "
+                                   "ground truth when the scan had any.")
+    p.add_argument("recording", type=Path, help="session directory, TUM/Redwood folder, .mkv file, or a scan's "
+                                                "output folder")
     p.add_argument("--skip-bad", action="store_true", help="describe a damaged recording, skipping bad frames")
     p.add_argument("--json", action="store_true", help="print the description as JSON")
     p.set_defaults(func=run)
@@ -139,9 +145,83 @@ def format_description(d: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _result_path(path: Path) -> Path | None:
+    """``result.npz`` of a scan output folder given as the folder or the file, else None."""
+    if path.is_file() and path.name.endswith(".npz"):
+        return path
+    if path.is_dir() and (path / "result.npz").is_file() and not (path / "meta.json").exists():
+        return path / "result.npz"
+    return None
+
+
+def describe_result(path: Path) -> dict[str, Any]:
+    """A JSON-able description of a scan's output (:class:`~appfusion.result.ScanResult` and the files
+    beside it). Uncertainties that were not estimated are None."""
+    from appfusion.result import ScanResult
+
+    res = ScanResult.load(path)
+    folder = path.parent
+
+    def num(v):
+        v = float(v)
+        return v if np.isfinite(v) else None
+
+    clusters = []
+    for c in range(res.n_clusters):
+        clusters.append({"cluster": c, "model": res.model[c], "points": int(np.sum(res.labels == c)),
+                         "alpha": num(res.alpha[c]), "alpha_sigma": num(res.alpha_sigma[c]),
+                         "rho_s": [num(v) for v in res.rho_s[c]],
+                         "rho_s_sigma": [num(v) for v in res.rho_s_sigma[c]]})
+    metrics = None
+    if (folder / "metrics.json").is_file():
+        try:
+            metrics = json.loads((folder / "metrics.json").read_text())
+        except ValueError:
+            metrics = None
+    files = sorted(f.name for f in folder.iterdir() if f.is_file() and f.suffix in
+                   (".glb", ".obj", ".mtl", ".ply", ".png", ".exr", ".hdr", ".html", ".json", ".npz"))
+    return {"path": str(folder), "result": str(path), "points": int(len(res.positions)),
+            "rho_d_median": [num(v) for v in np.median(res.rho_d, axis=0)] if len(res.rho_d) else None,
+            "clusters": clusters,
+            "mesh": {"vertices": int(len(res.mesh_vertices)), "faces": int(len(res.mesh_faces))},
+            "envmap": None if res.envmap is None else list(res.envmap.shape),
+            "rho_d_source": res.info.get("rho_d_source"), "alpha_source": res.info.get("alpha_source"),
+            "files": files, "metrics": metrics}
+
+
+def format_result(d: dict[str, Any]) -> str:
+    """Human-readable text of :func:`describe_result`'s dict."""
+    def pm(v, s, fmt):
+        return f"{v:{fmt}}" + ("" if s is None else f" ± {s:{fmt}}")
+
+    lines = [f"scan result {d['result']}",
+             f"points      {d['points']}" + ("" if d["rho_d_median"] is None else
+                                             "  (median rho_d " + ", ".join(f"{v:.3f}" for v in d["rho_d_median"]) + ")"),
+             "materials   (paper Eq. 1: rho_d/pi + rho_s Ward(alpha); ± one standard error)"]
+    for c in d["clusters"]:
+        rs = ", ".join(pm(v, s, ".4f") for v, s in zip(c["rho_s"], c["rho_s_sigma"]))
+        lines.append(f"  cluster {c['cluster']}: {c['model']:<7} {c['points']:>7} points  alpha "
+                     f"{pm(c['alpha'], c['alpha_sigma'], '.4f')}  rho_s {rs}")
+    m = d["mesh"]
+    lines.append(f"mesh        {m['vertices']} vertices, {m['faces']} faces")
+    lines.append("envmap      " + ("none" if d["envmap"] is None else "x".join(str(x) for x in d["envmap"][:3])
+                                   + " octahedral"))
+    lines.append(f"sources     rho_d: {d['rho_d_source']}; alpha: {d['alpha_source']}")
+    lines.append("files       " + (", ".join(d["files"]) or "none"))
+    if d["metrics"]:
+        lines.append("against truth " + ", ".join(f"{k} {v:.4g}" for k, v in d["metrics"].items()
+                                                  if isinstance(v, (int, float)) and not isinstance(v, bool)))
+    return "\n".join(lines)
+
+
 def run(args) -> int:
     from replay.open import detect_format, open_recording
 
+    rp = _result_path(args.recording)
+    if rp is not None:
+        d = describe_result(rp)
+        print(json.dumps(d, indent=2) if args.json else format_result(d))
+        return 0
     fmt = detect_format(args.recording)
     src = open_recording(args.recording, skip_bad=args.skip_bad)
     with src:
