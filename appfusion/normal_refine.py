@@ -326,6 +326,12 @@ class NormalRefiner:
             near-field correction at the old normal; NaN elsewhere (keep yours).
         stats : dict
             ``points`` refined, ``moved``, ``median_move_deg`` of the moved, ``seconds``.
+
+        Also sets :attr:`rho_d_factor` (P, 3): for the moved points, the refitted rho_d at the chosen
+        normal over the one at the point's own normal (candidate 0), both from this sweep's samples,
+        so that the sample noise cancels; NaN elsewhere. A caller whose rho_d went through
+        corrections the refiner does not make (pooling with neighbours, noise clipped at black)
+        scales it by this factor rather than replacing it.
         """
         g = self.rgb
         rss = self.rss()
@@ -348,6 +354,16 @@ class NormalRefiner:
             else:
                 mean_r = self.sum_r[qi, b] / self.n[qi, None]
             rho_d[self.sel[qi]] = mean_r / self.Dc[qi, b]
+            if self.tau is not None:
+                mean_0 = self.sum_wr[qi, 0] / np.maximum(self.sum_w[qi, 0], 1e-12)[:, None]
+            else:
+                mean_0 = self.sum_r[qi, 0] / self.n[qi, None]
+            rd0 = mean_0 / self.Dc[qi, 0]
+            ok = rd0 > 1e-6
+            self.rho_d_factor = np.full((len(N), 3), np.nan)
+            self.rho_d_factor[self.sel[qi]] = np.where(ok, rho_d[self.sel[qi]] / np.where(ok, rd0, 1.0), np.nan)
+        else:
+            self.rho_d_factor = np.full((len(N), 3), np.nan)
         ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", newn, self.N0[self.sel[qi]]), -1, 1)))
         stats = {"points": int(Q), "moved": int(len(qi)), "median_move_deg": float(np.median(ang)) if len(qi) else 0.0,
                  "gain_pct": np.percentile(gain[qi] / np.maximum(rss[qi, 0], 1e-30), [10, 50, 90]).round(3).tolist()

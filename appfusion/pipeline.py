@@ -1199,7 +1199,12 @@ class ScanRunner:
             self._rgb_sweep(ref, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
             N, rd, st = ref.result()
             moved = np.isfinite(rd).all(axis=1)
-            rho_d[moved] = np.clip(rd[moved], 0.0, None)
+            # the exported rho_d was pooled with its neighbours and corrected for noise clipped at
+            # black (§5g, §5h); the move changes it by the refit's factor at the new normal against
+            # the old one (the same samples), not by the raw refit, which has neither correction
+            f = ref.rho_d_factor[moved]
+            fine = np.isfinite(f) & (f > 0.25) & (f < 4.0)
+            rho_d[moved] = np.clip(np.where(fine, rho_d[moved] * np.where(fine, f, 1.0), rd[moved]), 0.0, None)
             self._note(f"rgb: normal refinement round {k + 1} (tilts {deg / 2:.2g}, {deg:.2g} deg): "
                        f"{st['moved']} of {st['points']} points moved (median {st['median_move_deg']:.2f} deg, "
                        f"residual explained {st['gain_pct']}; "

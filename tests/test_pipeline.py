@@ -285,3 +285,12 @@ def test_normal_refinement_rounds_run_are_saved_and_kept_on_resume(kinect_sphere
     r2, res2 = _run(kinect_sphere, out, normal_refine_rounds=2)      # resumed: every stage reused
     assert any("rgb: reusing" in m for m in r2.messages)
     np.testing.assert_array_equal(res2.normals, res1.normals)
+    # the CLI's --normal-refine ROUNDS sets it (checkpoints of the same configuration are reused)
+    from appfusion.cli import main
+
+    env = kinect_sphere / "truth" / "envmaps" / "office.exr"
+    args = ["scan", str(kinect_sphere), "--out", str(out), "--envmap", str(env), "--points", "3000", "--no-progress"]
+    assert main(args + ["--normal-refine", "-1"]) == 2
+    assert main(args + ["--normal-refine", "1"]) == 0
+    res3 = json.loads((out / "state" / "rgb.done").read_text())["config"]
+    assert res3["normal_refine_rounds"] == 1
