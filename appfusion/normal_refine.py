@@ -347,23 +347,12 @@ class NormalRefiner:
         newn = self.cand[qi, best[qi]]
         N[self.sel[qi]] = newn
         rho_d = np.full((len(N), 3), np.nan)
+        factor = np.full((len(N), 3), np.nan)
         if len(qi):
-            b = best[qi]
-            if self.tau is not None:
-                mean_r = self.sum_wr[qi, b] / np.maximum(self.sum_w[qi, b], 1e-12)[:, None]
-            else:
-                mean_r = self.sum_r[qi, b] / self.n[qi, None]
-            rho_d[self.sel[qi]] = mean_r / self.Dc[qi, b]
-            if self.tau is not None:
-                mean_0 = self.sum_wr[qi, 0] / np.maximum(self.sum_w[qi, 0], 1e-12)[:, None]
-            else:
-                mean_0 = self.sum_r[qi, 0] / self.n[qi, None]
-            rd0 = mean_0 / self.Dc[qi, 0]
-            ok = rd0 > 1e-6
-            self.rho_d_factor = np.full((len(N), 3), np.nan)
-            self.rho_d_factor[self.sel[qi]] = np.where(ok, rho_d[self.sel[qi]] / np.where(ok, rd0, 1.0), np.nan)
-        else:
-            self.rho_d_factor = np.full((len(N), 3), np.nan)
+            rd_best, rd_own = self._refit_rho_d(qi, best[qi]), self._refit_rho_d(qi, 0)
+            rho_d[self.sel[qi]] = rd_best
+            ok = rd_own > 1e-6
+            factor[self.sel[qi]] = np.where(ok, rd_best / np.where(ok, rd_own, 1.0), np.nan)
         ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", newn, self.N0[self.sel[qi]]), -1, 1)))
         stats = {"points": int(Q), "moved": int(len(qi)), "median_move_deg": float(np.median(ang)) if len(qi) else 0.0,
                  "gain_pct": np.percentile(gain[qi] / np.maximum(rss[qi, 0], 1e-30), [10, 50, 90]).round(3).tolist()
@@ -374,4 +363,15 @@ class NormalRefiner:
         out_n[g._order] = N
         out_r = np.empty_like(rho_d)
         out_r[g._order] = rho_d
+        self.rho_d_factor = np.empty_like(factor)
+        self.rho_d_factor[g._order] = factor                # the caller's order, as rho_d
         return out_n, out_r, stats
+
+    def _refit_rho_d(self, qi: np.ndarray, k) -> np.ndarray:
+        """``(mean L - rho_s mean S) / D`` (q, 3) of refined points ``qi`` at candidate(s) ``k``, the means
+        weighted as the pass weights them (``diffuse_tau``)."""
+        if self.tau is not None:
+            mean_r = self.sum_wr[qi, k] / np.maximum(self.sum_w[qi, k], 1e-12)[:, None]
+        else:
+            mean_r = self.sum_r[qi, k] / self.n[qi, None]
+        return mean_r / self.Dc[qi, k]

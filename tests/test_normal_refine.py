@@ -78,6 +78,14 @@ def test_tilted_glossy_normals_move_back_and_the_right_ones_stay(tilted_run):
     assert mv.any() and not mv[~moved].any()
     rel = np.abs(rho_d[mv] / sc.rho_d[mv] - 1)
     print(f"rho_d of the moved: median rel err {np.median(rel):.4f}")
+    # the factor a caller scales its own (pooled, corrected) rho_d by: the pass's rho_d at the
+    # tilted normals times it lands where the re-solve does; NaN for the points that did not move
+    f = ref.rho_d_factor
+    assert np.isfinite(f[mv]).all() and np.isnan(f[~mv]).all()
+    scaled = np.abs(res.rho_d[mv] * f[mv] / sc.rho_d[mv] - 1)
+    unscaled = np.abs(res.rho_d[mv] / sc.rho_d[mv] - 1)
+    print(f"pass rho_d of the moved: {np.median(unscaled):.4f}, times the factor {np.median(scaled):.4f}")
+    assert np.median(scaled) < np.median(unscaled)
     assert np.median(rel) < 0.05
 
 
