@@ -279,6 +279,9 @@ class Snapshot:
         Sampled points once the geometry is fused.
     labels : (P,) int32 or None; rho_d : (P, 3) or None
     alpha, alpha_sigma : (C,) or None; rho_s : (C, 3) or None
+    rho_s_sigma : (C, 3) or None
+        Standard error of each cluster's rho_s per channel (``RGBResult.rho_s_sigma``, docs/rgb-pass.md
+        §5i); NaN where unknown (the ``percentile`` estimator, a cluster without samples).
     envmap : (2, N, N, 3) float32 or None; env_coverage : (2, N, N) bool or None
     hbsabs : list of (n, n) float arrays per cluster, or None; hbsab_fits : same with the fitted lobes
     guidance : str
@@ -301,6 +304,7 @@ class Snapshot:
     alpha: np.ndarray | None = None
     alpha_sigma: np.ndarray | None = None
     rho_s: np.ndarray | None = None
+    rho_s_sigma: np.ndarray | None = None
     envmap: np.ndarray | None = None
     env_coverage: np.ndarray | None = None
     hbsabs: list | None = None
@@ -1092,8 +1096,12 @@ class ScanRunner:
             self._rgb_result = rgb_arrays
             if "normals" in rgb_arrays and self.points is not None:     # refined (_refine_normals)
                 self.points = (self.points[0], np.asarray(rgb_arrays["normals"], np.float32))
-            if self._restore_history("rgb", "rho_s"):
-                self._publish(force=True, history=self._snap.history)
+            restored = self._restore_history("rgb", "rho_s")
+            self._publish(force=True, rho_d=np.asarray(rgb_arrays["rho_d"], np.float32),
+                          rho_s=np.asarray(rgb_arrays["rho_s"], np.float32),
+                          rho_s_sigma=(np.asarray(rgb_arrays["rho_s_sigma"], np.float32)
+                                       if "rho_s_sigma" in rgb_arrays else None),
+                          **({"history": self._snap.history} if restored else {}))
             return
         P, N = self.points
         labels = self._current_labels()
@@ -1165,8 +1173,8 @@ class ScanRunner:
                 for c, (m, (a, b), w, z) in enumerate(zip(r.model, r.heldout_rss, ward, zs))))
         self._save_npz("rgb", **self._rgb_result)
         self._mark_done("rgb", {"frames": used, "history": {"rho_s": self._snap.history.get("rho_s", [])}})
-        self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"])
         sig = self._rgb_result.get("rho_s_sigma")
+        self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"], rho_s_sigma=sig)
         self._note(f"rgb: rho_d from {used} frames; rho_s per cluster = "
                    + "; ".join(", ".join(f"{v:.3f}" for v in row)
                                + (f" (± {', '.join(f'{e:.2g}' for e in sig[c])})"
@@ -1279,6 +1287,7 @@ class ScanRunner:
                 hist = self._snap.history
                 hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
                 self._publish(rho_d=np.asarray(r.rho_d, np.float32), rho_s=np.asarray(r.rho_s, np.float32),
+                              rho_s_sigma=None if r.rho_s_sigma is None else np.asarray(r.rho_s_sigma, np.float32),
                               history=hist)
         if used == 0:
             raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "

@@ -254,6 +254,7 @@ class FakeRunner:
                 alpha=None if a is None else np.asarray(a, np.float32),
                 alpha_sigma=None if a is None else np.float32(0.1) * np.asarray(a, np.float32),
                 rho_s=None if a is None else np.array([[0.2] * 3, [0.6] * 3], np.float32),
+                rho_s_sigma=None if rho_d is None else np.array([[0.004] * 3, [0.012, 0.011, 0.013]], np.float32),
                 envmap=env, env_coverage=cov, hbsabs=hb, hbsab_fits=fits,
                 guidance="(fake engine) " + self.stage, messages=[f"fake engine: stage {self.stage}"],
                 history={k: list(v) for k, v in self.history.items()})
@@ -708,6 +709,19 @@ def test_xcb_drive_scan_paint_undo_export(tmp_path, synth_session):
     assert win.snapshot.stage == "done" and win.snapshot.frame == sum(n for _, n in PASS_PLAN)
     assert win.stage_labels["rgb"].text().startswith("\u2713")
     assert np.isfinite(win.env.coverage) and win.env.coverage > 0.9
+    # each cluster's alpha and rho_s with their standard errors: in the status panel and, for rho_s
+    # (luminance), as error bars at the end of its convergence curves
+    mat = win.info["materials"].text()
+    a, sa = win.snapshot.alpha, win.snapshot.alpha_sigma
+    assert (f"0: \u03b1 {a[0]:.3f} \u00b1 {sa[0]:.2g}; \u03c1s 0.200, 0.200, 0.200 \u00b1 0.004, 0.004, 0.004<br>"
+            in mat), mat
+    assert mat.endswith(f"1: \u03b1 {a[1]:.3f} \u00b1 {sa[1]:.2g}; \u03c1s 0.600, 0.600, 0.600 \u00b1 0.012, 0.011, 0.013"), mat
+    eb = win.plots.rhos_err.opts
+    np.testing.assert_allclose(eb["y"], [0.2, 0.6], rtol=1e-5)
+    w = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance; the channels' errors independent
+    np.testing.assert_allclose(eb["top"], [0.004 * np.sqrt(np.sum(w ** 2)), np.sqrt(np.sum((w * [0.012, 0.011, 0.013]) ** 2))],
+                               rtol=1e-4)
+    assert np.all(eb["x"] == win.snapshot.history["rho_s"][-1][0])
 
     # paint the wrongly clustered patch on the +x side as cluster 0 (looking at it from +x)
     r = h["r"]

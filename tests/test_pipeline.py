@@ -53,8 +53,12 @@ def test_a_scan_rerun_on_its_checkpoints_keeps_the_reports_curves_and_hbsabs(kin
     assert h1.get("alpha") and h1.get("rho_s") and s1.hbsabs
     # each cluster's rho_s carries its standard error, and the checkpoint keeps it
     assert np.isfinite(res1.rho_s_sigma).all() and (res1.rho_s_sigma > 0).all(), res1.rho_s_sigma
+    # ... which the snapshot (what the GUI shows) carries too, from the run and from the checkpoint
+    np.testing.assert_array_equal(s1.rho_s_sigma, res1.rho_s_sigma)
     r2, res2 = _run(kinect_sphere, out)
     np.testing.assert_array_equal(res2.rho_s_sigma, res1.rho_s_sigma)
+    np.testing.assert_array_equal(r2.snapshot().rho_s_sigma, res1.rho_s_sigma)
+    np.testing.assert_array_equal(r2.snapshot().rho_d, s1.rho_d)
     assert any("ir: reusing the checkpointed clusters" in m for m in r2.messages)
     assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
     s2 = r2.snapshot()

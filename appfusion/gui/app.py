@@ -381,7 +381,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.info = {}
         rows = [("source", "source"), ("state", "state"), ("stage", "stage"), ("frames", "frames used"),
                 ("tracking", "tracking"), ("markers", "markers"), ("points", "points"),
-                ("clusters", "clusters"), ("env", "env coverage"), ("hbsab", "HBSAB bins"),
+                ("clusters", "clusters"), ("materials", "materials"), ("env", "env coverage"), ("hbsab", "HBSAB bins"),
                 ("fps", "engine fps"), ("ui", "UI redraws"), ("snaps", "snapshots/s"), ("record", "recording"),
                 ("out", "output")]
         for r, (key, text) in enumerate(rows):
@@ -792,6 +792,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._continue_close()
 
     def _update_state(self) -> None:
+        from .views import materials_text
+
         w = self.worker
         s = self.snapshot
         state = "no source" if self.source is None else ("ready" if w is None else w.state)
@@ -809,6 +811,8 @@ class MainWindow(QtWidgets.QMainWindow):
                                          + "<span style='color:#555'>" + "\u25cb" * max(4 - mv, 0) + f"</span> {mv}/4")
             self.info["points"].setText("-" if s.positions is None else f"{len(s.positions):,}")
             self.info["clusters"].setText("-" if s.alpha is None else str(len(s.alpha)))
+            self.info["materials"].setText(materials_text(s.alpha, s.alpha_sigma, s.rho_s,
+                                                          getattr(s, "rho_s_sigma", None)))
             cov = self.env.coverage
             self.info["env"].setText("-" if not np.isfinite(cov) else f"{100 * cov:.0f}% of the sphere")
             hb = self.hbsab.coverage

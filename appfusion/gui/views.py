@@ -200,8 +200,62 @@ class HBSABView(pg.GraphicsLayoutWidget):
 _SHORT = {"ir-calibration": "ir-cal", "environment": "env", "geometry": "geom"}
 
 
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+def _fmt(v: float, sig: float | None = None) -> str:
+    """``v`` to three decimals (or three significant digits below 0.01), with ``± sig`` to two."""
+    if not np.isfinite(v):
+        return "-"
+    txt = f"{v:.3f}" if abs(v) >= 0.01 or v == 0 else f"{v:.3g}"
+    if sig is not None and np.isfinite(sig):
+        txt += f" \u00b1 {sig:.2g}"
+    return txt
+
+
+def materials_text(alpha, alpha_sigma=None, rho_s=None, rho_s_sigma=None, html: bool = True) -> str:
+    """One line per cluster: its roughness alpha and specular rho_s (R, G, B), each with its standard
+    error where the engine has one (``Snapshot.alpha_sigma``, ``Snapshot.rho_s_sigma``; NaN or None:
+    left out). ``"-"`` before the IR pass has clusters.
+
+    Parameters
+    ----------
+    alpha, alpha_sigma : (C,) arrays or None
+    rho_s, rho_s_sigma : (C, 3) arrays or None
+    html : bool
+        Prefix each line with a dot in the cluster's palette colour (rich text for a QLabel); else
+        plain text.
+    """
+    if alpha is None or len(alpha) == 0:
+        return "-"
+    a = np.asarray(alpha, np.float64).reshape(-1)
+    sa = None if alpha_sigma is None else np.asarray(alpha_sigma, np.float64).reshape(-1)
+    rs = None if rho_s is None else np.asarray(rho_s, np.float64).reshape(-1, 3)
+    ss = None if rho_s_sigma is None else np.asarray(rho_s_sigma, np.float64).reshape(-1, 3)
+    lines = []
+    for c in range(len(a)):
+        line = f"{c}: \u03b1 {_fmt(a[c], sa[c] if sa is not None and c < len(sa) else None)}"
+        if rs is not None and c < len(rs):
+            line += "; \u03c1s " + ", ".join(_fmt(v) for v in rs[c])
+            if ss is not None and c < len(ss) and np.isfinite(ss[c]).all():
+                line += " \u00b1 " + ", ".join(f"{e:.2g}" for e in ss[c])
+        if html:
+            col = "#%02x%02x%02x" % tuple(int(255 * v) for v in C.cluster_rgb([c])[0])
+            line = f"<span style='color:{col}'>\u25cf</span> " + line
+        lines.append(line)
+    return ("<br>" if html else "\n").join(lines)
+
+
+def luminance_sigma(rho_s_sigma) -> np.ndarray:
+    """Standard error (C,) of each cluster's rho_s luminance (Rec. 709 weights) from the channels'
+    standard errors (C, 3), taking the channels' errors as independent; NaN where a channel's is."""
+    s = np.asarray(rho_s_sigma, np.float64).reshape(-1, 3)
+    return np.sqrt(((s * LUMINANCE) ** 2).sum(axis=1))
+
+
 class PlotsView(pg.GraphicsLayoutWidget):
-    """Live figures: fps per stage, per-cluster alpha with its uncertainty, alpha and rho_s convergence."""
+    """Live figures: fps per stage, per-cluster alpha with its uncertainty, alpha and rho_s convergence
+    (rho_s with its standard error at the latest frame)."""
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -209,7 +263,7 @@ class PlotsView(pg.GraphicsLayoutWidget):
         self.p_fps = self.addPlot(row=0, col=0, title="fps per stage")
         self.p_alpha = self.addPlot(row=0, col=1, title="alpha per cluster (+- 1 sigma)")
         self.p_conv = self.addPlot(row=1, col=0, title="alpha convergence")
-        self.p_rhos = self.addPlot(row=1, col=1, title="rho_s convergence (luminance)")
+        self.p_rhos = self.addPlot(row=1, col=1, title="rho_s convergence (luminance, +- 1 sigma)")
         for p in (self.p_fps, self.p_alpha, self.p_conv, self.p_rhos):
             p.showGrid(x=False, y=True, alpha=0.2)
         self.p_conv.setLabel("bottom", "frame")
@@ -224,6 +278,8 @@ class PlotsView(pg.GraphicsLayoutWidget):
         self.p_alpha.setXRange(-0.5, 1.5)
         self.p_alpha.setYRange(0, 0.5)
         self.p_alpha.getAxis("bottom").setTicks([[(0, "0"), (1, "1")]])
+        self.rhos_err = pg.ErrorBarItem(x=np.zeros(0), y=np.zeros(0), beam=0.0, pen=pg.mkPen((220, 220, 220)))
+        self.p_rhos.addItem(self.rhos_err)
         self.conv_curves: list = []
         self.rhos_curves: list = []
         self._fp = None
@@ -235,7 +291,7 @@ class PlotsView(pg.GraphicsLayoutWidget):
             return np.zeros(0), np.zeros((0, 0))
         frames = np.array([float(h[0]) for h in hist])
         vals = [np.atleast_1d(np.asarray(h[1], np.float64)) for h in hist]
-        vals = [v @ np.array([0.2126, 0.7152, 0.0722]) if v.ndim == 2 and v.shape[-1] == 3 else v.reshape(-1)
+        vals = [v @ LUMINANCE if v.ndim == 2 and v.shape[-1] == 3 else v.reshape(-1)
                 for v in vals]
         c = max(len(v) for v in vals)
         out = np.full((len(vals), c), np.nan)
@@ -258,8 +314,8 @@ class PlotsView(pg.GraphicsLayoutWidget):
         fps = dict(getattr(snap, "fps", None) or {})
         hist = getattr(snap, "history", None) or {}
         fp = (tuple(sorted((k, round(float(v), 1)) for k, v in fps.items())),
-              fingerprint(snap.alpha), fingerprint(snap.alpha_sigma),
-              tuple((k, len(v)) for k, v in sorted(hist.items())))
+              fingerprint(snap.alpha), fingerprint(snap.alpha_sigma), fingerprint(snap.rho_s),
+              fingerprint(getattr(snap, "rho_s_sigma", None)), tuple((k, len(v)) for k, v in sorted(hist.items())))
         if fp == self._fp:
             return
         self._fp = fp
@@ -281,6 +337,23 @@ class PlotsView(pg.GraphicsLayoutWidget):
         self._curves(self.p_conv, self.conv_curves, f, v)
         f, v = self._series(hist.get("rho_s"))
         self._curves(self.p_rhos, self.rhos_curves, f, v)
+        self._rho_s_error_bars(snap, f)
+
+    def _rho_s_error_bars(self, snap, frames) -> None:
+        """Each cluster's rho_s (luminance) +- its standard error, at the latest frame of the curves
+        (the engine's estimate now, which may differ from the curve's last point once the colour
+        split and second sweep have run)."""
+        sig = getattr(snap, "rho_s_sigma", None)
+        if snap.rho_s is None or sig is None:
+            self.rhos_err.setData(x=np.zeros(0), y=np.zeros(0))
+            return
+        y = np.asarray(snap.rho_s, np.float64).reshape(-1, 3) @ LUMINANCE
+        s = luminance_sigma(sig)[:len(y)]
+        y = y[:len(s)]
+        ok = np.isfinite(y) & np.isfinite(s)
+        x0 = float(frames[-1]) if len(frames) else float(snap.frame)
+        x = np.full(int(ok.sum()), x0)
+        self.rhos_err.setData(x=x, y=y[ok], top=s[ok], bottom=s[ok], beam=max(x0, 1.0) * 0.02)
 
 
 def point_spacing(positions: np.ndarray, n_query: int = 100, k: int = 6, chunk: int = 16384) -> float:
