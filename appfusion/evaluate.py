@@ -20,6 +20,10 @@ Only evaluation reads ``truth/``; the engine never does. Metrics (names as in ``
   noise, NaN where no standard error was estimated.
 - ``alpha_sharpest_rel_err``: alpha error of the cluster mapped to the material with the most visible
   IR highlight (largest ``ir_rho_s / alpha^2``); a near-matte material's alpha is hardly determined.
+- ``matte_rho_s``: over the points on a material without a lobe (truth ``rho_s`` 0: the ``matte``
+  scene), the mean of their cluster's exported ``rho_s`` (mean over RGB, absolute): 0 when every such
+  point is exported diffuse; a false lobe raises it by its strength times the area it covers. NaN
+  when the object has no such material.
 - ``envmap_median_rel_err``: median texel-wise relative error over covered, lit directions the capture can
   know (not hidden by the support plane) against the truth map divided by the white circles' radiance
   (the engine's units); ``envmap_energy_rel_err``: the map's total energy over the same directions
@@ -180,7 +184,7 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
     # near-matte material's alpha (the two-material label: rho_s 0.02, alpha 0.35, a lobe 7 % above its
     # diffuse level) is barely determined by any IR data, so its error is reported apart
     peak = {mid: m.get("ir_rho_s", max(m["rho_s"])) / m["alpha"] ** 2 for mid, m in enumerate(mats)
-            if m.get("lobe", "ward") == "ward" and m["alpha"] > 0}
+            if m.get("lobe", "ward") == "ward" and m["alpha"] > 0 and m.get("ir_rho_s", max(m["rho_s"])) > 0}
     if peak:
         sharp = max(peak, key=peak.get)
         cl = [c for c, mid in mapping.items() if mid == sharp and c < result.n_clusters]
@@ -188,6 +192,13 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
             out["alpha_sharpest_rel_err"] = float(min(abs(result.alpha[c] - mats[sharp]["alpha"]) / mats[sharp]["alpha"]
                                                       for c in cl))
     out["rho_s_rel_err"] = float(max(s_err)) if s_err else float("nan")
+    matte_ids = [mid for mid, m in enumerate(mats) if max(m["rho_s"]) <= 0 and m.get("lobe", "ward") != "mirror"]
+    on_matte = np.isin(fm, matte_ids)
+    if on_matte.any() and result.n_clusters:
+        rs_pt = np.asarray(result.rho_s, float).mean(axis=1)[np.clip(result.labels, 0, result.n_clusters - 1)]
+        out["matte_rho_s"] = float(np.mean(rs_pt[on_matte]))
+    else:
+        out["matte_rho_s"] = float("nan")
     out["rho_s_err_sigmas"] = float(max(z_err)) if z_err else float("nan")
     keep = cp[:, 2] > 0.01
     trd = np.einsum("pk,pki->pi", bary, obj["rho_d"][tri])

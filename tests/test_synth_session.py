@@ -174,3 +174,32 @@ def test_demo_session_is_generated_once(tmp_path, monkeypatch):
     p2 = S.demo_session(tmp_path)
     assert p1 == p2 == tmp_path / "synth-demo-two-material" and (p1 / "truth" / "scene.json").exists()
     assert calls == [("two-material", (640, 480), S.DEMO_FRAMES)]
+
+
+def test_matte_scene_and_the_false_lobe_metric(tmp_path):
+    """The ``matte`` scene has one material without a lobe in colour or IR, and ``evaluate_result``'s
+    ``matte_rho_s`` is the exported rho_s over that material's area: 0 for a diffuse export, the
+    lobe's strength times the fraction it covers for a false one; its alpha is not judged."""
+    from appfusion.evaluate import evaluate_result
+    from appfusion.result import ScanResult
+    from replay.synth.objects import build_object
+
+    obj = build_object("matte", detail="test")
+    (m,) = obj.materials.to_json()
+    assert m["rho_s"] == [0.0, 0.0, 0.0] and m["ir_rho_s"] == 0.0
+    assert np.all(obj.material_id == 0) and obj.rho_d.std(axis=0).min() > 0.05   # printed, not plain
+    truth = tmp_path / "session" / "truth"
+    truth.mkdir(parents=True)
+    np.savez_compressed(truth / "object.npz", **obj.truth_arrays())
+    (truth / "materials.json").write_text(json.dumps({"materials": obj.materials.to_json()}))
+    P, N = obj.vertices.astype(np.float32), obj.normals.astype(np.float32)
+    upper = (P[:, 2] > 0.06).astype(np.int32)                 # two clusters on the one material
+    def result(rho_s):
+        return ScanResult(P, N, obj.rho_d.astype(np.float32), upper, np.asarray(rho_s, np.float32),
+                          np.array([0.3, 0.3], np.float32), np.zeros(2, np.float32),
+                          mesh_vertices=P, mesh_faces=obj.faces)
+    e = evaluate_result(result([[0, 0, 0], [0, 0, 0]]), tmp_path / "session", relight=False)
+    assert e["matte_rho_s"] == 0.0
+    assert np.isnan(e["rho_s_rel_err"]) and np.isnan(e["alpha_cluster_rel_err"]) and "alpha_sharpest_rel_err" not in e
+    e = evaluate_result(result([[0, 0, 0], [0.02, 0.04, 0.03]]), tmp_path / "session", relight=False)
+    assert e["matte_rho_s"] == pytest.approx(0.03 * upper.mean(), rel=1e-5)

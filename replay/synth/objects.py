@@ -20,6 +20,9 @@ Objects (``OBJECTS``):
 ``two-material`` a capsule-shaped bottle: glossy blue paint on the top part (z >= 7.5 cm), a matte
                  textured label on the rest; two Ward materials.
 ``ggx-sphere``   the sphere with a GGX lobe (so a Ward-based estimator meets a model it does not have).
+``matte``        the two-material capsule printed all over on matte paper: one material with no
+                 specular lobe in colour or IR (rho_s = 0), so a scan should export it diffuse; a lobe
+                 found there is a false one (texture edges, the footprint of a pixel, noise).
 """
 
 from __future__ import annotations
@@ -360,12 +363,34 @@ def _two_material(detail: str, seed: int) -> ObjectModel:
                        {"shape": "capsule", "radius_m": r, "cap_centre_z_m": zc, "material_boundary_z_m": zb})
 
 
+
+def _matte(detail: str, seed: int) -> ObjectModel:
+    """The two-material capsule wrapped in printed matte paper (one diffuse material, rho_s = 0)."""
+    cap = _two_material(detail, seed)
+    v, n = cap.vertices, cap.normals
+    zz, phi = v[:, 2], np.arctan2(v[:, 1], v[:, 0])
+    # kraft paper, three printed dark-green stripes, a band of soft print blocks, mottling
+    stripes = np.zeros(len(v))
+    for z0 in (0.018, 0.060, 0.098):
+        stripes = np.maximum(stripes, 1 - np.clip((np.abs(zz - z0) - 0.003) / 0.0008 + 0.5, 0, 1))
+    blocks = (0.5 + 0.5 * np.tanh(np.sin(3 * phi) * np.sin(2 * np.pi * zz / 0.05) / 0.2)) * (zz > 0.025) * (zz < 0.052)
+    mott = 1 + 0.05 * _value_noise(v, seed + 17, 0.04)
+    paper = np.array([0.66, 0.52, 0.36]) * (1 - 0.4 * blocks)[:, None] * mott[:, None]
+    rho = paper * (1 - stripes[:, None]) + np.array([0.10, 0.24, 0.14]) * stripes[:, None]
+    rho[n[:, 2] < -0.999] = [0.60, 0.48, 0.34]                  # the bottom disc, never seen
+    ir = 0.60 - 0.25 * stripes
+    # alpha is required by the material record but unused: rho_s = 0 in colour and IR
+    mats = MaterialSet([Material("matte-paper", (0.0, 0.0, 0.0), 0.3, "ward", ir_rho_s=0.0)])
+    return ObjectModel("matte", v, cap.faces, n, np.clip(rho, 0, 0.95), ir, np.zeros(len(v), np.int32), mats,
+                       dict(cap.info, material="one diffuse material (rho_s = 0 in colour and IR)"))
+
 OBJECTS = {
     "sphere": lambda detail, seed: _sphere(detail, seed, "ward"),
     "vase": _vase,
     "pepper": _pepper,
     "two-material": _two_material,
     "ggx-sphere": lambda detail, seed: _sphere(detail, seed, "ggx"),
+    "matte": _matte,
 }
 
 
