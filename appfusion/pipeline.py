@@ -54,8 +54,22 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: the configuration; 22: specular normal refinement, its normals saved with the RGB stage; 23: normals
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
 #: configuration; 24: rho_d corrected for the noise clipped at black; 25: the colour split only where
-#: the lobe varies)
-CHECKPOINT_VERSION = 25
+#: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse)
+CHECKPOINT_VERSION = 26
+
+
+def _broad_lobe(alpha) -> np.ndarray:
+    """(C,) bool: clusters whose fitted IR roughness ran to its upper bound (``ward_fit.ALPHA_MAX``, 1).
+
+    Such a fit found no highlight: a Ward lobe of alpha 1 spreads over the whole hemisphere, and what it
+    models there (a grazing brightening from the lobe's ``1 / sqrt(cos_i cos_o)``) is the diffuse
+    model's own error. The synthetic ``matte`` scene (rho_s 0 in colour and IR; session 26) fitted
+    alpha 1.000 with IR rho_s 0.046, and the colour pass then kept a false lobe of rho_s 0.004, 0.001,
+    0.002 at held-out z 5.2. So the model ladder's first rung takes such a cluster as diffuse.
+    """
+    from .ward_fit import ALPHA_MAX
+
+    return np.asarray(alpha, np.float64).reshape(-1) >= ALPHA_MAX * (1 - 1e-6)
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -1018,7 +1032,9 @@ class ScanRunner:
                        hbsab_images=_stack_images(snap.hbsabs), hbsab_fit_images=_stack_images(snap.hbsab_fits))
         self._mark_done("ir", {"frames": used, "k": res.k, "k_auto": res.k_auto, "notes": res.notes,
                                "history": {"alpha": snap.history.get("alpha", [])}})
-        al = ", ".join(f"{a:.3f}" for a in self._ir_result["alpha"])
+        broad = _broad_lobe(self._ir_result["alpha"])
+        al = ", ".join(f"{a:.3f}" + (" (at the roughness bound: no lobe)" if b else "")
+                       for a, b in zip(self._ir_result["alpha"], broad))
         self._note(f"ir: {res.k} specular cluster(s){' (automatic k)' if res.k_auto else ''}, alpha = {al}")
 
     def _new_ir_pass(self):
@@ -1107,17 +1123,21 @@ class ScanRunner:
         labels = self._current_labels()
         ir = getattr(self, "_ir_result", None)
         alpha = ir["alpha"] if ir is not None else np.array([0.3])
-        # model ladder, first rung from the IR pass: a cluster whose IR shows no lobe (no fit, or rho_s 0)
-        # is diffuse, and the RGB pass builds no double-product table for it
+        # model ladder, first rung from the IR pass: a cluster whose IR shows no lobe (no fit, rho_s 0,
+        # or a lobe as broad as the model allows) is diffuse, and the RGB pass builds no
+        # double-product table for it
         specular = None
         if ir is not None and "rho_s_ir" in ir:
-            specular = np.asarray(ir["fitted"], bool) & (np.asarray(ir["rho_s_ir"]) > 1e-6)
+            broad = _broad_lobe(ir["alpha"])
+            specular = np.asarray(ir["fitted"], bool) & (np.asarray(ir["rho_s_ir"]) > 1e-6) & ~broad
             if int(labels.max()) + 1 > len(specular):           # painted new clusters: let RGB decide
                 specular = np.r_[specular, np.ones(int(labels.max()) + 1 - len(specular), bool)]
                 alpha = np.r_[alpha, np.full(len(specular) - len(alpha), 0.3, np.float32)]
             if not specular.all():
+                why = (f" (the fit of cluster(s) {', '.join(str(c) for c in np.flatnonzero(broad))} ran to the roughness "
+                       "bound, alpha 1: no highlight the Ward model can tell from diffuse)" if broad.any() else "")
                 self._note(f"rgb: cluster(s) {', '.join(str(c) for c in np.flatnonzero(~specular))} show no "
-                           "specular lobe in the IR: diffuse only, no double-product tables for them")
+                           f"specular lobe in the IR{why}: diffuse only, no double-product tables for them")
         self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular,
                            near_field=self._near_field(), **self._rgb_kwargs())
         self._publish(force=True, stage="rgb", guidance=GUIDANCE["rgb"], tracking="ok")
@@ -1327,7 +1347,7 @@ class ScanRunner:
         self._note(("rgb: second sweep with the refitted lobes (alpha " if reassign else
                     "rgb: third sweep with the lobes of the final clusters (alpha ")
                    + ", ".join(f"{a:.3f}" for a in alpha) + ")")
-        specular = np.asarray(first.specular, bool) | np.asarray(refitted, bool)
+        specular = (np.asarray(first.specular, bool) | np.asarray(refitted, bool)) & ~_broad_lobe(alpha)
         # the lobes the first sweep measured (its model ladder kept them) are also measured on every
         # other point, so that each point can go to the model that explains it best
         kept = [c for c in range(min(len(alpha), len(first.model))) if first.model[c] == "ward" and specular[c]]

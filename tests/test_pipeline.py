@@ -298,3 +298,21 @@ def test_normal_refinement_rounds_run_are_saved_and_kept_on_resume(kinect_sphere
     assert main(args + ["--normal-refine", "1"]) == 0
     res3 = json.loads((out / "state" / "rgb.done").read_text())["config"]
     assert res3["normal_refine_rounds"] == 1
+
+
+def test_a_cluster_whose_ir_lobe_runs_to_the_roughness_bound_is_diffuse(kinect_sphere, tmp_path):
+    """The model ladder's first rung: an IR fit at alpha's upper bound (1) measured no highlight (the
+    synthetic matte scene, rho_s 0, fitted alpha 1.000 and the colour pass then kept a false lobe), so
+    the cluster is exported diffuse and the colour pass builds no table for it."""
+    out = tmp_path / "scan"
+    r1, res1 = _run(kinect_sphere, out)
+    assert res1.model == ["ward"] and (res1.rho_s > 0).all()
+    ir = dict(np.load(out / "state" / "ir.npz"))
+    ir["alpha"] = np.ones_like(ir["alpha"])                  # the IR stage's lobe at the bound
+    np.savez_compressed(out / "state" / "ir.npz", **ir)
+    for f in ("rgb.done", "rgb.npz"):
+        (out / "state" / f).unlink()
+    r2, res2 = _run(kinect_sphere, out)
+    assert any("ran to the roughness bound" in m and "diffuse only" in m for m in r2.messages), r2.messages
+    assert res2.model == ["diffuse"] and (res2.rho_s == 0).all()
+    assert not r2.rgb.specular.any()
