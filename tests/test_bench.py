@@ -352,9 +352,10 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     from appfusion.errors import EstimationError
     import appfusion.pipeline as P
 
-    session = tmp_path / "sessions" / S.session_name("two-material", 40, (320, 240), 0, "test", "test")
-    (session / "truth").mkdir(parents=True)
-    (session / "truth" / "scene.json").write_text(json.dumps({"ball": {"radius_m": 0.035}}))
+    for scene in ("two-material", "matte"):
+        session = tmp_path / "sessions" / S.session_name(scene, 40, (320, 240), 0, "test", "test")
+        (session / "truth").mkdir(parents=True)
+        (session / "truth" / "scene.json").write_text(json.dumps({"ball": {"radius_m": 0.035}}))
     seen = []
 
     def fake_run_scan(sess, out, config, envmap=None, progress=False, log=print):
@@ -371,7 +372,7 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     monkeypatch.setattr(P, "run_scan", fake_run_scan)
     ctx = BenchContext(workdir=tmp_path, quick=True, stage="scan", log=lambda s: None)
     got = S.run(ctx)
-    assert seen == [None, 0.035]
+    assert seen == [None, 0.035, None, 0.035]                    # the two-material scan, then the matte one
     assert got["relit_rel_rmse"] == 0.25 and got["scan_ate_mm"] == 1.5 and got["scan_label_accuracy"] == 0.9
     assert got["scan_envmap_median_rel_err"] is None and got["scan_rho_s_rel_err"] is None   # NaN / missing
     assert got["demo_scan_s"] >= 0.05 and set(got) <= set(METRICS)
@@ -380,6 +381,8 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     assert e["fallback"]["ball_radius_m"] == 0.035 and "sphere fit" in e["fallback"]["error"]
     assert e["evaluation"]["alpha_sharpest_rel_err"] == 0.1 and e["session"]["demo"] is False
     assert "small session" in ctx.notes["demo_scan_s"] and "radius given" in ctx.notes["relit_rel_rmse"]
+    assert e["matte"]["fallback"]["ball_radius_m"] == 0.035 and "radius given" in ctx.notes["scan_matte_rho_s"]
+    assert got["scan_matte_relit_rel_rmse"] == 0.25 and got["scan_matte_rho_s"] is None   # not in the stand-in's metrics
     assert 0.0 <= got["skip_lighting_saving"] <= 1.0
 
 
@@ -420,6 +423,8 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
 
     monkeypatch.setattr(S, "QUICK_SESSION", {"scene": "two-material", "frames": 16, "size": (320, 240),
                                               "detail": "test", "quality": "test"})
+    monkeypatch.setattr(S, "MATTE_SESSION", {"scene": "matte", "frames": 16, "size": (320, 240),
+                                              "detail": "test", "quality": "test"})
     monkeypatch.setattr(S, "QUICK_POINTS", 2000)
     monkeypatch.setattr(S, "QUICK_TEXTURE", 64)
     ctx = BenchContext(workdir=tmp_path, quick=True, stage="scan", log=lambda s: None)
@@ -431,7 +436,13 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     print(f"scan stage {time.perf_counter() - t0:.1f} s, of which the scan {ctx.extra['scan']['wall_s']:.1f} s")
     assert ctx.extra["scan"]["wall_s"] < 60
     assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
-                        "scan_ir_pattern_heldout_cv", *S.SCAN_METRICS.values()}
+                        "scan_ir_pattern_heldout_cv", *S.SCAN_METRICS.values(), *S.MATTE_METRICS.values()}
+    # the matte scene (no lobe) is scanned too: its rho_s over its area, rho_d and relit error
+    mt = ctx.extra["scan"]["matte"]
+    print(f"matte scan {mt['wall_s']:.1f} s: model {mt['model']}, rho_s {got['scan_matte_rho_s']}, "
+          f"rho_d {got['scan_matte_rho_d_median_rel_err']}, relit {got['scan_matte_relit_rel_rmse']}")
+    assert got["scan_matte_rho_s"] is not None and got["scan_matte_rho_s"] >= 0 and mt["model"]
+    assert 0 < got["scan_matte_rho_d_median_rel_err"] < 1 and 0 < got["scan_matte_relit_rel_rmse"] < 10
     for k, v in got.items():
         assert v is None or math.isfinite(v), k
     assert 0 < got["relit_rel_rmse"] < 10 and got["scan_chamfer_mm"] > 0 and got["scan_normal_err_deg"] > 0

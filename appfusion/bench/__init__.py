@@ -93,6 +93,10 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "scan_ir_pattern_heldout_cv": ("fraction", None, "lower"),     # IR emitter pattern map, held-out spread
     "scan_relit_interior_rel_rmse": ("fraction", None, "lower"),   # relit without the 1-px silhouette band (diagnostic)
     "scan_rho_s_err_sigmas": ("standard errors", None, "lower"),  # rho_s error over its own standard error (diagnostic)
+    # the matte scene (one material, no lobe): exported rho_s over its area (0: diffuse; no goal, 0 is right)
+    "scan_matte_rho_s": ("rho_s", None, "lower"),
+    "scan_matte_rho_d_median_rel_err": ("fraction", 0.03, "lower"),
+    "scan_matte_relit_rel_rmse": ("fraction", 0.05, "lower"),
     # "skip what the scene doesn't need": fraction of the run time saved by each skip (no goal; the
     # before / after figures and the error check are in extra and docs/performance.md)
     "skip_fusion_saving": ("fraction", None, "higher"),

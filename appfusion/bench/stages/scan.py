@@ -27,6 +27,12 @@ the synthetic scanner (``replay.synth``), and reports:
     The IR calibration's emitter-pattern map (:mod:`calibration.ir_pattern`): the relative spread of
     sheet pixels at held-out distances around the map's prediction (the pattern's own spread, ~0.45,
     is ``extra["scan"]["ir_pattern"]["heldout_cv_without"]``).
+``scan_matte_rho_s``, ``scan_matte_rho_d_median_rel_err``, ``scan_matte_relit_rel_rmse``
+    The same scan of the ``matte`` scene (one printed paper material, rho_s 0 in colour and IR;
+    :data:`MATTE_SESSION`, the full bench :data:`MATTE_SESSION_FULL`): the rho_s the scan exports
+    over that material's area (0 when it is exported diffuse: a false lobe is the model ladder's
+    error, session 26), its rho_d and its relit error. ``extra["scan"]["matte"]`` holds the evaluation,
+    the model per cluster and the scan's messages.
 ``skip_lighting_saving``
     "A reused environment map skips the lighting pass" (issue #11): the fraction of the scan's wall
     time saved when the environment map of an earlier scan on the same markers is given
@@ -61,12 +67,21 @@ from typing import Any, Iterator
 
 import numpy as np
 
-#: quick / full budgets, seconds (the quick scan itself takes ~25-40 s on 2 shared cores)
-BUDGET_S = (45.0, 900.0)
+#: quick / full budgets, seconds (each quick scan takes ~25-40 s on 2 shared cores: the two-material
+#: session's, then the matte scene's)
+BUDGET_S = (90.0, 1500.0)
 
 #: the --quick session: small, but enough frames for the mirror ball, the tracking and the materials
 QUICK_SESSION: dict[str, Any] = {"scene": "two-material", "frames": 40, "size": (320, 240), "detail": "test",
                                  "quality": "test"}
+#: the matte scene (one material without a lobe): what a scan exports for it, --quick and full
+MATTE_SESSION: dict[str, Any] = {"scene": "matte", "frames": 40, "size": (320, 240), "detail": "test",
+                                 "quality": "test"}
+MATTE_SESSION_FULL: dict[str, Any] = {"scene": "matte", "frames": 200, "size": (640, 480), "detail": "full",
+                                      "quality": "full"}
+#: evaluation names -> bench metric names of the matte scan
+MATTE_METRICS = {"matte_rho_s": "scan_matte_rho_s", "rho_d_median_rel_err": "scan_matte_rho_d_median_rel_err",
+                 "relit_rel_rmse": "scan_matte_relit_rel_rmse"}
 #: points sampled on the object in the --quick scan (the full bench uses ScanConfig's default, 100k)
 QUICK_POINTS = 10_000
 #: side of the exported textures in the --quick scan (full: ScanConfig's default)
@@ -339,6 +354,25 @@ def truth_clusters(session: Path, positions: np.ndarray) -> tuple[np.ndarray, np
     return labels, alphas, specular
 
 
+def _scan_with_fallback(session: Path, out: Path, config, info: dict, log) -> dict[str, Any]:
+    """:func:`timed_scan`; if the environment pass cannot fit the mirror ball, again with its radius given
+    (as a user would with ``appfusion scan --ball-radius``), noted in ``info["fallback"]``."""
+    from appfusion.errors import EstimationError
+
+    try:
+        return timed_scan(session, out, config, log=None)
+    except EstimationError as e:
+        if "sphere" not in str(e).lower():
+            raise
+        scene = json.loads((Path(session) / "truth" / "scene.json").read_text())
+        config.ball_radius_m = float(scene["ball"]["radius_m"])
+        info["fallback"] = {"error": str(e), "ball_radius_m": config.ball_radius_m,
+                            "what": "the environment pass could not fit the mirror ball; scanned again with "
+                                    "its radius given (appfusion scan --ball-radius)"}
+        log(f"bench scan: WARNING: {e}; scanning again with the ball radius given")
+        return timed_scan(session, out, config, log=None)
+
+
 def _number(v) -> float | None:
     try:
         f = float(v)
@@ -349,7 +383,6 @@ def _number(v) -> float | None:
 
 def run(ctx) -> dict[str, float | None]:
     """Bench entry point (see the module docstring)."""
-    from appfusion.errors import EstimationError
     from appfusion.pipeline import ScanConfig
 
     log = ctx.log
@@ -372,19 +405,7 @@ def run(ctx) -> dict[str, float | None]:
     info["config"] = config.to_json()
     out = ctx.workdir / "scan"
 
-    try:
-        first = timed_scan(session, out, config, log=None)
-    except EstimationError as e:
-        if "sphere" not in str(e).lower():
-            raise
-        # the mirror ball could not be fitted: a user would give its radius (appfusion scan --ball-radius)
-        scene = json.loads((Path(session) / "truth" / "scene.json").read_text())
-        config.ball_radius_m = float(scene["ball"]["radius_m"])
-        info["fallback"] = {"error": str(e), "ball_radius_m": config.ball_radius_m,
-                            "what": "the environment pass could not fit the mirror ball; scanned again with "
-                                    "its radius given (appfusion scan --ball-radius)"}
-        log(f"bench scan: WARNING: {e}; scanning again with the ball radius given")
-        first = timed_scan(session, out, config, log=None)
+    first = _scan_with_fallback(session, out, config, info, log)
     m = first["metrics"]
     info.update({"wall_s": round(first["wall_s"], 2), "stage_s": first["stage_s"], "evaluation": m,
                  "summary": first["summary"], "messages": first["messages"][-30:]})
@@ -445,11 +466,34 @@ def run(ctx) -> dict[str, float | None]:
             ctx.note(k, "mirror-ball radius given: the sphere fit failed (extra.scan.fallback)")
     ctx.extra["scan"] = info
 
+    # -- the matte scene: a material without a lobe, which the scan should export diffuse ----------
+    q = MATTE_SESSION if ctx.quick else MATTE_SESSION_FULL
+    msession, mrender_s = cached_session(ctx.workdir / "sessions", q["scene"], q["frames"], q["size"], ctx.seed,
+                                         q["detail"], q["quality"], cache_dir=synth_cache, log=log)
+    mconfig = ScanConfig(n_points=QUICK_POINTS, texture_size=QUICK_TEXTURE) if ctx.quick else ScanConfig()
+    minfo: dict[str, Any] = {"session": {**q, "size": list(q["size"]), "seed": ctx.seed, "path": str(msession),
+                                         "render_s": round(mrender_s, 2)}}
+    matte = _scan_with_fallback(msession, ctx.workdir / "scan-matte", mconfig, minfo, log)
+    mm = matte["metrics"]
+    models = None
+    if (ctx.workdir / "scan-matte" / "result.npz").exists():
+        from appfusion.result import ScanResult
+
+        models = list(ScanResult.load(ctx.workdir / "scan-matte" / "result.npz").model)
+    minfo.update({"wall_s": round(matte["wall_s"], 2), "evaluation": mm, "model": models,
+                  "messages": matte["messages"][-30:]})
+    info["matte"] = minfo
+    if "fallback" in minfo:
+        for k in MATTE_METRICS.values():
+            ctx.note(k, "mirror-ball radius given: the sphere fit failed (extra.scan.matte.fallback)")
+
     got: dict[str, float | None] = {"relit_rel_rmse": _number(m.get("relit_rel_rmse")),
                                     "demo_scan_s": round(first["wall_s"], 2),
                                     "skip_lighting_saving": saving, "skip_wavelet_saving": wav}
     for k, name in SCAN_METRICS.items():
         got[name] = _number(m.get(k))
+    for k, name in MATTE_METRICS.items():
+        got[name] = _number(mm.get(k))
     # the IR calibration's emitter-pattern map (calibration.ir_pattern): the spread of held-out sheet
     # pixels' intensity over the map's prediction (without the map: the pattern's own, ~0.45)
     prof_path = out / "state" / "ir_profile.json"
