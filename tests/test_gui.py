@@ -948,3 +948,18 @@ def test_xcb_real_engine(tmp_path):
         assert Path(win.exported[key]).exists(), key
     win.close()
     wait_until(lambda: not win.isVisible(), timeout=30, what="close")
+
+
+def test_materials_text_per_cluster():
+    """The status panel's materials: alpha and rho_s per channel with their standard errors, a cluster
+    without a lobe as diffuse, unknown errors left out."""
+    from appfusion.gui.views import luminance_sigma, materials_text
+
+    assert materials_text(None) == "-"
+    txt = materials_text([0.0593, 0.343], [0.0011, 0.0098], [[0.35, 0.35, 0.351], [0.0, 0.0, 0.0]],
+                         [[3e-4, 3e-4, 3e-4], [0.0024, 0.0028, 0.0028]], html=False)
+    assert txt.split("\n") == ["0: \u03b1 0.059 \u00b1 0.0011; \u03c1s 0.350, 0.350, 0.351 \u00b1 0.0003, 0.0003, 0.0003",
+                               "1: \u03b1 0.343 \u00b1 0.0098; diffuse (\u03c1s 0)"]
+    txt = materials_text([0.2], None, [[0.032, 0.004, 0.0]], [[np.nan, 0.001, 0.001]], html=True)
+    assert txt.startswith("<span style='color:#") and txt.endswith("0: \u03b1 0.200; \u03c1s 0.032, 0.004, 0.000")
+    np.testing.assert_allclose(luminance_sigma([[1.0, 1.0, 1.0]]), [np.sqrt(0.2126 ** 2 + 0.7152 ** 2 + 0.0722 ** 2)])

@@ -216,7 +216,8 @@ def _fmt(v: float, sig: float | None = None) -> str:
 def materials_text(alpha, alpha_sigma=None, rho_s=None, rho_s_sigma=None, html: bool = True) -> str:
     """One line per cluster: its roughness alpha and specular rho_s (R, G, B), each with its standard
     error where the engine has one (``Snapshot.alpha_sigma``, ``Snapshot.rho_s_sigma``; NaN or None:
-    left out). ``"-"`` before the IR pass has clusters.
+    left out); "diffuse" for a cluster whose rho_s is 0 (the model ladder chose no lobe). ``"-"``
+    before the IR pass has clusters.
 
     Parameters
     ----------
@@ -235,7 +236,9 @@ def materials_text(alpha, alpha_sigma=None, rho_s=None, rho_s_sigma=None, html: 
     lines = []
     for c in range(len(a)):
         line = f"{c}: \u03b1 {_fmt(a[c], sa[c] if sa is not None and c < len(sa) else None)}"
-        if rs is not None and c < len(rs):
+        if rs is not None and c < len(rs) and np.all(rs[c] == 0):
+            line += "; diffuse (\u03c1s 0)"                   # the model ladder's lower rung
+        elif rs is not None and c < len(rs):
             line += "; \u03c1s " + ", ".join(_fmt(v) for v in rs[c])
             if ss is not None and c < len(ss) and np.isfinite(ss[c]).all():
                 line += " \u00b1 " + ", ".join(f"{e:.2g}" for e in ss[c])
