@@ -34,7 +34,7 @@ from .fusion import (FusionConfig, TSDFFusion, _skew, _twist_to_pose, anchor_inf
                      downsample_depth, kabsch, voxel_size_for_box)
 from .markers import (MarkerConfig, MarkerDetection, MarkerTracker, ObjectBox, detect_markers,
                       marker_config_from_meta)
-from .points import PointGrid, bilateral_filter_normals, sample_points, sharpen_creases
+from .points import PointGrid, bilateral_filter_normals, sample_points, sharpen_creases, snap_planes
 
 __all__ = ["GeometryConfig", "FrameState", "GeometryResult", "GeometryPass", "PoseRefiner", "tight_curvature_fraction"]
 
@@ -92,6 +92,10 @@ class GeometryConfig:
     crease_radius_voxels : float or None
         After the normal filter, points near a sharp crease take the normal of a one-sided plane fit
         (:func:`appfusion.points.sharpen_creases`, radius this many voxels; session 17). None: off.
+    plane_snap : bool
+        Then the points on large planar faces, up to their rounded edges, take the face's plane normal
+        (:func:`appfusion.points.snap_planes`; session 26). The vase's lid; none on the capsules,
+        the sphere or the pepper.
     refuse_voxel_scale : float
         Voxel of :meth:`GeometryPass.refuse`'s fresh TSDF as a fraction of tracking's (the scan
         passes ``ScanConfig.refuse_voxel_scale``, 1 by default); the normal filter's width follows it.
@@ -138,6 +142,7 @@ class GeometryConfig:
     bilateral_adaptive_c: float = 2.5
     bilateral_adaptive_converge: float | None = 0.7
     crease_radius_voxels: float | None = 2.5
+    plane_snap: bool = True
     refuse_voxel_scale: float = 1.0
     refuse_fine_scale: float | None = 2.0 / 3.0
     refuse_fine_radius_voxels: float = 6.5
@@ -593,6 +598,8 @@ class GeometryPass:
                                       adaptive_converge=cfg.bilateral_adaptive_converge)
         if cfg.crease_radius_voxels is not None:
             Nf = sharpen_creases(P, Nf, radius=float(cfg.crease_radius_voxels) * vs, seed=cfg.seed)
+        if cfg.plane_snap:
+            Nf = snap_planes(P, Nf, voxel=vs)
         poses = np.full((len(self.states), 4, 4), np.nan)
         for i, s in enumerate(self.states):
             if s.pose is not None:

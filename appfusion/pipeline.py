@@ -54,8 +54,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: the configuration; 22: specular normal refinement, its normals saved with the RGB stage; 23: normals
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
 #: configuration; 24: rho_d corrected for the noise clipped at black; 25: the colour split only where
-#: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse)
-CHECKPOINT_VERSION = 26
+#: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse; 27: normals of
+#: planar faces snapped to their plane)
+CHECKPOINT_VERSION = 27
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -179,6 +180,11 @@ class ScanConfig:
     crease_radius_voxels : float or None
         Normals near sharp creases from one-sided plane fits (:func:`appfusion.points.sharpen_creases`;
         session 17), within this many voxels; None: off. No point of the capsules qualifies.
+    plane_snap : bool
+        Points on large planar faces, up to their rounded edges, take the face's plane normal
+        (:func:`appfusion.points.snap_planes`; session 26): the vase's lid drooped at its rim and its
+        normals tilted 4-11 degrees there; relit 0.157 -> 0.130 with the same scan's points
+        (docs/geometry-pass.md). No face is found on the capsules, the sphere or the pepper.
     normal_refine_rounds : int
         Sweeps of specular normal refinement after the RGB pass (:mod:`appfusion.normal_refine`;
         beyond the paper): each glossy point's normal moves to the candidate whose highlights fit its
@@ -251,6 +257,7 @@ class ScanConfig:
     refuse_fine_scale: float | None = 2.0 / 3.0
     refuse_trunc_voxels: float | None = None
     crease_radius_voxels: float | None = 2.5
+    plane_snap: bool = True
     normal_refine_rounds: int = 0
     normal_refine_deg: float = 3.0
     normal_refine_screen: float | None = None
@@ -475,6 +482,8 @@ class ScanRunner:
         if not (isinstance(c.near_field_final_samples, (int, np.integer)) and 1 <= int(c.near_field_final_samples) <= 256):
             raise AppFusionError("scan config: near_field_final_samples must be an integer in [1, 256] (lobe samples of "
                                  f"the support plane's dS in the RGB re-sweeps), got {c.near_field_final_samples!r}")
+        if not isinstance(c.plane_snap, (bool, np.bool_)):
+            raise AppFusionError(f"scan config: plane_snap must be True or False, got {c.plane_snap!r}")
         if not isinstance(c.rho_d_clip_correction, (bool, np.bool_)):
             raise AppFusionError(f"scan config: rho_d_clip_correction must be True or False, got {c.rho_d_clip_correction!r}")
         if not (isinstance(c.rho_d_pool_k, (int, np.integer)) and 0 <= int(c.rho_d_pool_k) <= 1024):
@@ -2020,7 +2029,8 @@ class _Geometry:
                               refuse_voxel_scale=float(config.refuse_voxel_scale),
                               refuse_fine_scale=config.refuse_fine_scale,
                               refuse_trunc_voxels=config.refuse_trunc_voxels,
-                              crease_radius_voxels=config.crease_radius_voxels)
+                              crease_radius_voxels=config.crease_radius_voxels,
+                              plane_snap=bool(config.plane_snap))
         fc = {} if surface else {"surface_max_incidence_deg": None}
         if config.voxel_m:
             fc["voxel_size"] = config.voxel_m

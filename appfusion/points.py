@@ -580,6 +580,101 @@ class NormalField:
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
+
+def snap_planes(positions: np.ndarray, normals: np.ndarray, voxel: float, k: int = 32, flat: float = 0.025,
+                plane: float = 0.03, min_extent_voxels: float = 4.0, edge_deg: float = 2.0,
+                reach_voxels: float = 1.5, reach_offset: float = 0.25, reach_deg: float = 25.0,
+                min_points: int = 100, stats: dict | None = None) -> np.ndarray:
+    """Normals of the points on large planar faces: the face's own plane normal (beyond the paper).
+
+    A TSDF rounds the edge of a flat face over about a voxel: on the synthetic vase (2 mm voxels) the
+    lid's top drooped by 0.35 mm within 1 mm of its rim and 0.13 mm at 1-2 mm, and its filtered and
+    crease-sharpened normals tilted outwards by 8-11 and 4.5 degrees there (:func:`sharpen_creases`
+    keeps a curve the positions really have). A grazing sun's glint on that lid is lost for a few
+    degrees: the oracle with the truth's normals on the top face within 3 mm of its rim took the
+    vase's relit error from 0.157 to 0.129 (session 26).
+
+    A planar face is found as a connected set of points whose local plane (``k`` neighbours, PCA) has
+    an RMS residual under ``flat`` voxels, joined where neighbours (within 2.5 point spacings) differ
+    in normal by less than ``edge_deg``; it is a plane if the plane fitted to all of it has an RMS
+    residual under ``plane`` voxels and it spans at least ``min_extent_voxels`` voxels in both
+    directions (twice the square root of its second PCA eigenvalue). A curved surface joins into one
+    set whose plane fit fails (the capsules, the sphere and the pepper find none; a cylinder would
+    have to be over ~12 cm in radius for a strip wide enough to pass). Every point within
+    ``reach_voxels`` voxels of a face's points, within ``reach_offset`` voxels of its plane and
+    within ``reach_deg`` degrees of its normal (the rounded edge's points on the face's side) then
+    takes the plane's normal, oriented like its own.
+
+    Parameters
+    ----------
+    positions, normals : (N, 3) arrays
+        Points (metres) and unit normals (e.g. :func:`sharpen_creases`' output).
+    voxel : float
+        The TSDF voxel (metres) the thresholds scale with.
+    k, flat, plane, min_extent_voxels, edge_deg, reach_voxels, reach_offset, reach_deg, min_points
+        See above; ``min_points``: smallest face, points.
+    stats : dict, optional
+        Filled with ``"flat"`` (points with a flat neighbourhood), ``"planes"`` (per candidate face:
+        points, RMS and extent in mm, kept, points snapped) and ``"snapped"`` (total).
+
+    Returns
+    -------
+    (N, 3) float64 unit normals: the input's where no face claims the point.
+    """
+    P, Nn = _check_points(positions, normals, "snap_planes")
+    if Nn is None:
+        raise AppFusionError("snap_planes: normals are required")
+    if not (np.isfinite(voxel) and voxel > 0):
+        raise AppFusionError(f"snap_planes: voxel must be a positive length in metres, got {voxel}")
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    P = P.astype(np.float64)
+    out = np.asarray(Nn, np.float64).copy()
+    st = {"flat": 0, "planes": [], "snapped": 0}
+    if stats is not None:
+        stats.update(st)
+        st = stats
+    n = len(P)
+    if n < max(min_points, k + 1):
+        return out
+    tree = cKDTree(P)
+    d, nb = tree.query(P, k=k)
+    Q = P[nb]
+    Q -= Q.mean(axis=1, keepdims=True)
+    w, v = np.linalg.eigh(np.einsum("pki,pkj->pij", Q, Q) / k)
+    del Q
+    local_n = v[:, :, 0]
+    flat_idx = np.flatnonzero(np.sqrt(np.maximum(w[:, 0], 0.0)) < flat * voxel)
+    st["flat"] = int(len(flat_idx))
+    if len(flat_idx) < min_points:
+        return out
+    spacing = float(np.median(d[:, min(8, k - 1)]))
+    pairs = cKDTree(P[flat_idx]).query_pairs(2.5 * spacing, output_type="ndarray")
+    a, b = flat_idx[pairs[:, 0]], flat_idx[pairs[:, 1]]
+    keep = np.abs(np.einsum("ij,ij->i", local_n[a], local_n[b])) > np.cos(np.radians(edge_deg))
+    a, b = a[keep], b[keep]
+    _, comp = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+    sizes = np.bincount(comp[flat_idx])
+    for c in np.flatnonzero(sizes >= min_points):
+        idx = flat_idx[comp[flat_idx] == c]
+        X = P[idx]
+        m = X.mean(axis=0)
+        ew, ev = np.linalg.eigh(np.cov((X - m).T))
+        nc, rms, extent = ev[:, 0], float(np.sqrt(max(ew[0], 0.0))), float(2 * np.sqrt(max(ew[1], 0.0)))
+        face = {"points": int(len(idx)), "rms_mm": round(rms * 1e3, 4), "extent_mm": round(extent * 1e3, 2),
+                "kept": bool(rms < plane * voxel and extent >= min_extent_voxels * voxel), "snapped": 0}
+        st["planes"].append(face)
+        if not face["kept"]:
+            continue
+        near, _ = cKDTree(X).query(P, distance_upper_bound=reach_voxels * voxel)
+        sel = (np.isfinite(near) & (np.abs((P - m) @ nc) < reach_offset * voxel)
+               & (np.abs(out @ nc) > np.cos(np.radians(reach_deg))))
+        out[sel] = np.where((out[sel] @ nc)[:, None] < 0, -nc, nc)
+        face["snapped"] = int(sel.sum())
+        st["snapped"] += face["snapped"]
+    return out
+
 # -- sampling (paper §4.1: "randomly sampling points with a probability proportional to the surface area")
 def sample_points(mesh, n: int = 100_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Sample points on a triangle mesh with probability proportional to area, with mesh normals.

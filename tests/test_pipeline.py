@@ -105,7 +105,7 @@ def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect
             _run(kinect_sphere, tmp_path / "samples", near_field_final_samples=bad)
     assert not (tmp_path / "samples" / "state").exists()
     for name, bad in (("rho_d_pool_k", -1), ("rho_d_pool_k", 3.5), ("rho_d_pool_z", 0), ("rho_d_pool_z", float("nan")),
-                      ("rho_d_clip_correction", "yes"), ("rho_d_clip_correction", 1)):
+                      ("rho_d_clip_correction", "yes"), ("rho_d_clip_correction", 1), ("plane_snap", "no")):
         with pytest.raises(AppFusionError, match=name):
             _run(kinect_sphere, tmp_path / "pool", **{name: bad})
     assert not (tmp_path / "pool" / "state").exists()

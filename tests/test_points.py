@@ -491,3 +491,46 @@ def test_sharpen_creases_leaves_smooth_spheres_alone_or_better():
         else:
             assert st["candidates"] > 0.9 * len(u)
             assert np.median(err(out)) < np.median(err(N)) and np.percentile(err(out), 99) < np.percentile(err(N), 99)
+
+
+def test_snap_planes_gives_a_drooping_lids_rim_the_lids_normal_and_leaves_curved_surfaces_alone():
+    """The vase's case (session 26): a flat lid whose TSDF-rounded rim droops 0.35 mm and tilts its
+    normals outwards by up to ~11 degrees gets the lid's normal up to the rim; the wall below the rim
+    keeps its own. No face is found on a 4 cm cylinder's side or a sphere."""
+    from appfusion.points import snap_planes
+
+    rng = np.random.default_rng(5)
+    R, voxel = 0.034, 0.002
+    # the lid: a disc of radius R at z = 0, drooping by 0.35 mm over its outer 2 mm
+    r = R * np.sqrt(rng.random(12000))
+    ph = rng.uniform(0, 2 * np.pi, len(r))
+    edge = np.clip((r - (R - 0.002)) / 0.002, 0, 1)
+    lid = np.stack([r * np.cos(ph), r * np.sin(ph), -0.00035 * edge ** 2], 1) + rng.normal(0, 2e-5, (len(r), 3))
+    tilt = np.radians(11.0) * edge ** 1.5
+    lid_n = np.stack([np.sin(tilt) * np.cos(ph), np.sin(tilt) * np.sin(ph), np.cos(tilt)], 1)
+    # the wall below the rim: a cylinder side 4 cm tall
+    zph = rng.uniform(0, 2 * np.pi, 20000)
+    wall = np.stack([R * np.cos(zph), R * np.sin(zph), -rng.uniform(0.0005, 0.04, len(zph))], 1)
+    wall_n = np.stack([np.cos(zph), np.sin(zph), np.zeros_like(zph)], 1)
+    P, N = np.concatenate([lid, wall]), np.concatenate([lid_n, wall_n])
+    st = {}
+    out = snap_planes(P, N, voxel=voxel, stats=st)
+    kept = [f for f in st["planes"] if f["kept"]]
+    assert len(kept) == 1 and kept[0]["rms_mm"] < 0.06 and kept[0]["extent_mm"] > 30, st["planes"]
+    n_lid = len(lid)
+    up = np.degrees(np.arccos(np.clip(out[:n_lid, 2], -1, 1)))
+    rim = edge > 0.5                                     # the outer 1 mm, 5-11 degrees off before
+    assert np.degrees(np.arccos(N[:n_lid][rim, 2])).min() > 3.5
+    assert up.max() < 0.1, up.max()                      # the whole lid, rim included, points up
+    assert np.array_equal(out[n_lid:], N[n_lid:])        # the wall keeps its normals
+    assert st["snapped"] == n_lid
+    # curved surfaces: one connected set whose plane fit fails, nothing snapped
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    for PP, NN in ((0.07 * u, u), (wall, wall_n)):
+        st = {}
+        assert np.array_equal(snap_planes(PP, NN, voxel=0.003, stats=st), NN) and st["snapped"] == 0, st["planes"]
+    with pytest.raises(AppFusionError, match="voxel"):
+        snap_planes(P, N, voxel=0.0)
+    with pytest.raises(AppFusionError, match="normals"):
+        snap_planes(P, N[:10], voxel=voxel)
