@@ -196,8 +196,11 @@ def write_report(out_dir: str | os.PathLike, result: ScanResult, *, title: str =
     figs.update(figures or {})
     rows = []
     for c in range(result.n_clusters):
-        rows.append(f"<tr><td>{c}</td><td>{html.escape(result.model[c])}</td><td>{result.alpha[c]:.4f} ± "
-                    f"{result.alpha_sigma[c]:.4f}</td><td>{', '.join(f'{v:.4f}' for v in result.rho_s[c])}</td>"
+        a_cell = f"{result.alpha[c]:.4f} ± {result.alpha_sigma[c]:.4f}"
+        if result.model[c] == "diffuse":                 # no lobe: the IR pass's alpha is not used
+            a_cell = f"— <small>(IR fit {a_cell}, unused)</small>"
+        rows.append(f"<tr><td>{c}</td><td>{html.escape(result.model[c])}</td><td>{a_cell}</td>"
+                    f"<td>{', '.join(f'{v:.4f}' for v in result.rho_s[c])}</td>"
                     f"<td>{_sigma_cell(result.rho_s_sigma[c])}</td>"
                     f"<td>{int(np.sum(result.labels == c))}</td></tr>")
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",

@@ -48,6 +48,11 @@ def test_result_roundtrip(tmp_path):
 
     html = write_report(tmp_path, back).read_text()
     assert "rho_s standard error" in html and "0.0020, 0.0021, 0.0025" in html and "—" in html
+    # a cluster the model ladder made diffuse shows no alpha of its own (the IR fit's, marked unused)
+    back.model = ["diffuse", "ward"]
+    html = write_report(tmp_path, back).read_text()
+    assert "<td>diffuse</td><td>— <small>(IR fit 0.5000 ± 0.0100, unused)</small></td>" in html
+    assert "<td>ward</td><td>0.1000 ± 0.0020</td>" in html
     with pytest.raises(ValueError, match="rho_s_sigma"):
         ScanResult(r.positions, r.normals, r.rho_d, r.labels, r.rho_s, r.alpha, rho_s_sigma=np.zeros((3, 3)))
 
