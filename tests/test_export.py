@@ -135,6 +135,11 @@ def test_info_describes_a_scan_output_folder(tmp_path, capsys):
     d = json.loads(capsys.readouterr().out)
     assert d["clusters"][1]["rho_s_sigma"] == pytest.approx([0.002, 0.0021, 0.0025], rel=1e-5)
     assert d["clusters"][0]["rho_s_sigma"] == [None, None, None] and d["metrics"]["rho_s_rel_err"] == 0.0412
+    r.model = ["diffuse", "ward"]                       # the model ladder's lower rung: no alpha of its own
+    r.save(tmp_path / "result.npz")
+    assert main(["info", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "cluster 0: diffuse" in out and "alpha - (IR fit 0.5000 ± 0.0100, unused)  rho_s 0\n" in out
     (tmp_path / "result.npz").write_bytes(b"not a zip")
     assert main(["info", str(tmp_path)]) == 2
     assert "not a readable scan result" in capsys.readouterr().err

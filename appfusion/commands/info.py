@@ -200,8 +200,10 @@ def format_result(d: dict[str, Any]) -> str:
              "materials   (paper Eq. 1: rho_d/pi + rho_s Ward(alpha); ± one standard error)"]
     for c in d["clusters"]:
         rs = ", ".join(pm(v, s, ".4f") for v, s in zip(c["rho_s"], c["rho_s_sigma"]))
-        lines.append(f"  cluster {c['cluster']}: {c['model']:<7} {c['points']:>7} points  alpha "
-                     f"{pm(c['alpha'], c['alpha_sigma'], '.4f')}  rho_s {rs}")
+        a = pm(c['alpha'], c['alpha_sigma'], '.4f')
+        if c["model"] == "diffuse":                         # no lobe: the IR fit's alpha is not used
+            a, rs = f"- (IR fit {a}, unused)", "0"
+        lines.append(f"  cluster {c['cluster']}: {c['model']:<7} {c['points']:>7} points  alpha {a}  rho_s {rs}")
     m = d["mesh"]
     lines.append(f"mesh        {m['vertices']} vertices, {m['faces']} faces")
     lines.append("envmap      " + ("none" if d["envmap"] is None else "x".join(str(x) for x in d["envmap"][:3])
