@@ -282,6 +282,7 @@ class PlotsView(pg.GraphicsLayoutWidget):
         self.p_alpha.setYRange(0, 0.5)
         self.p_alpha.getAxis("bottom").setTicks([[(0, "0"), (1, "1")]])
         self.rhos_err = pg.ErrorBarItem(x=np.zeros(0), y=np.zeros(0), beam=0.0, pen=pg.mkPen((220, 220, 220)))
+        self.rhos_err.setVisible(False)
         self.p_rhos.addItem(self.rhos_err)
         self.conv_curves: list = []
         self.rhos_curves: list = []
@@ -348,7 +349,8 @@ class PlotsView(pg.GraphicsLayoutWidget):
         split and second sweep have run)."""
         sig = getattr(snap, "rho_s_sigma", None)
         if snap.rho_s is None or sig is None:
-            self.rhos_err.setData(x=np.zeros(0), y=np.zeros(0))
+            # hidden, not emptied: an empty ErrorBarItem still puts x = 0 into the plot's auto range
+            self.rhos_err.setVisible(False)
             return
         y = np.asarray(snap.rho_s, np.float64).reshape(-1, 3) @ LUMINANCE
         s = luminance_sigma(sig)[:len(y)]
@@ -357,6 +359,7 @@ class PlotsView(pg.GraphicsLayoutWidget):
         x0 = float(frames[-1]) if len(frames) else float(snap.frame)
         x = np.full(int(ok.sum()), x0)
         self.rhos_err.setData(x=x, y=y[ok], top=s[ok], bottom=s[ok], beam=max(x0, 1.0) * 0.02)
+        self.rhos_err.setVisible(bool(ok.any()))
 
 
 def point_spacing(positions: np.ndarray, n_query: int = 100, k: int = 6, chunk: int = 16384) -> float:
