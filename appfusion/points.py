@@ -640,12 +640,15 @@ def snap_planes(positions: np.ndarray, normals: np.ndarray, voxel: float, k: int
         return out
     tree = cKDTree(P)
     d, nb = tree.query(P, k=k)
-    Q = P[nb]
-    Q -= Q.mean(axis=1, keepdims=True)
-    w, v = np.linalg.eigh(np.einsum("pki,pkj->pij", Q, Q) / k)
-    del Q
-    local_n = v[:, :, 0]
-    flat_idx = np.flatnonzero(np.sqrt(np.maximum(w[:, 0], 0.0)) < flat * voxel)
+    local_n = np.empty((n, 3))
+    local_rms = np.empty(n)
+    for s0 in range(0, n, 32768):                        # local planes in chunks: (chunk, k, 3) at a time
+        Q = P[nb[s0:s0 + 32768]]
+        Q -= Q.mean(axis=1, keepdims=True)
+        w, v = np.linalg.eigh(np.einsum("pki,pkj->pij", Q, Q) / k)
+        local_n[s0:s0 + 32768] = v[:, :, 0]
+        local_rms[s0:s0 + 32768] = np.sqrt(np.maximum(w[:, 0], 0.0))
+    flat_idx = np.flatnonzero(local_rms < flat * voxel)
     st["flat"] = int(len(flat_idx))
     if len(flat_idx) < min_points:
         return out
