@@ -71,6 +71,8 @@ def _broad_lobe(alpha) -> np.ndarray:
     from .ward_fit import ALPHA_MAX
 
     return np.asarray(alpha, np.float64).reshape(-1) >= ALPHA_MAX * (1 - 1e-6)
+
+
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
 STAGES = ("ir-calibration", "environment", "geometry", "ir", "rgb", "export", "done")
 
@@ -183,7 +185,7 @@ class ScanConfig:
     plane_snap : bool
         Points on large planar faces, up to their rounded edges, take the face's plane normal
         (:func:`appfusion.points.snap_planes`; session 26): the vase's lid drooped at its rim and its
-        normals tilted 4-11 degrees there; relit 0.157 -> 0.130 with the same scan's points
+        normals tilted 4-11 degrees there; relit 0.157 -> 0.138 in a full scan
         (docs/geometry-pass.md). No face is found on the capsules, the sphere or the pepper.
     normal_refine_rounds : int
         Sweeps of specular normal refinement after the RGB pass (:mod:`appfusion.normal_refine`;
