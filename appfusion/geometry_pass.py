@@ -110,11 +110,17 @@ class GeometryConfig:
         See ``refuse_fine_scale``.
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion, in its voxels (None, the default: tracking's
-        ``FusionConfig.trunc_voxels``, 4). A ray that hits an overhanging edge (a lid's rim seen from
-        above) writes "behind the surface" into the free space under the edge for a truncation's
-        length along the ray, and the views that see that space are few: the vase's neck bulged out
-        1.5-2.4 mm over the 10 mm below its lid at 4 voxels, 0.15-0.4 mm at 2 (session 17). 2 is not
-        the default: seed 3's relit error rose 0.057 -> 0.066 (docs/geometry-pass.md).
+        ``FusionConfig.trunc_voxels``, 4, or ``refuse_fine_trunc_voxels`` where the object curves
+        tightly). A ray that hits an overhanging edge (a lid's rim seen from above) writes "behind
+        the surface" into the free space under the edge for a truncation's length along the ray, and
+        the views that see that space are few: the vase's neck bulged out 1.5-2.4 mm over the 10 mm
+        below its lid at 4 voxels, 0.15-0.4 mm at 2 (session 17). 2 everywhere is not the default:
+        seed 3's relit error rose 0.057 -> 0.066 (docs/geometry-pass.md).
+    refuse_fine_trunc_voxels : float or None
+        The re-fusion's truncation where ``refuse_fine_scale`` applies (the object curves tightly;
+        never on the capsules), unless ``refuse_trunc_voxels`` is given (session 26: 2; None: 4).
+        With the planar faces snapped (``plane_snap``), the vase's relit 0.138 -> 0.113 and its neck's
+        normals 2-6 mm below the lid 10-18 -> 2.5-3.6 degrees; the pepper 0.215 -> 0.200.
     min_component : float
         Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
         are dropped (flying fragments).
@@ -148,6 +154,7 @@ class GeometryConfig:
     refuse_fine_radius_voxels: float = 6.5
     refuse_fine_fraction: float = 0.01
     refuse_trunc_voxels: float | None = None
+    refuse_fine_trunc_voxels: float | None = 2.0
     min_component: float = 0.02
     hole_radius: float = 0.01
     seed: int = 0
@@ -271,6 +278,7 @@ class GeometryPass:
         #: the first mesh's fraction of tightly curved vertices it decided from (``refuse_fine_scale``)
         self.refuse_scale: float | None = None
         self.tight_fraction: float | None = None
+        self.fine_triggered = False                  # refuse_fine_scale applied (the object curves tightly)
         self.tracker = MarkerTracker(self.marker_config)
         self.states: list[FrameState] = []
         self.box: ObjectBox | None = None
@@ -508,11 +516,15 @@ class GeometryPass:
                     old, self.config.refuse_fine_radius_voxels * self._tracking_voxel)
                 if self.tight_fraction >= self.config.refuse_fine_fraction:
                     self.refuse_scale = float(fine)
+                    self.fine_triggered = True
         if self.refuse_scale != 1.0:
             # scaled from tracking's voxel, also in a second round (whose volume is already scaled)
             fc = replace(fc, voxel_size=self._tracking_voxel * self.refuse_scale)
-        if self.config.refuse_trunc_voxels is not None:
-            fc = replace(fc, trunc_voxels=float(self.config.refuse_trunc_voxels))
+        trunc = self.config.refuse_trunc_voxels
+        if trunc is None and self.fine_triggered:
+            trunc = self.config.refuse_fine_trunc_voxels
+        if trunc is not None:
+            fc = replace(fc, trunc_voxels=float(trunc))
         new = TSDFFusion(self.fusion.intrinsics, fc)
         if self.fusion.roi is not None:
             new.set_roi(*self.fusion.roi)

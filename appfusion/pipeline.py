@@ -55,8 +55,8 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
 #: configuration; 24: rho_d corrected for the noise clipped at black; 25: the colour split only where
 #: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse; 27: normals of
-#: planar faces snapped to their plane)
-CHECKPOINT_VERSION = 27
+#: planar faces snapped to their plane; 28: the fine re-fusion truncates at 2 voxels)
+CHECKPOINT_VERSION = 28
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -172,9 +172,13 @@ class ScanConfig:
         ``GeometryConfig.refuse_fine_scale``): with ``refuse_voxel_scale`` 1, if at least 1 % of the
         first mesh's vertices curve tighter than 6.5 voxels (pepper 2.2 %, vase 2.8 %, the capsules
         none), the re-fusion runs at this fraction of tracking's voxel (2/3: 2 mm for 3). None: never.
+    refuse_fine_trunc_voxels : float or None
+        The re-fusion's truncation where the object curves tightly (``refuse_fine_scale`` applies),
+        unless ``refuse_trunc_voxels`` is given (session 26; ``GeometryConfig``): 2 removes the vase's
+        neck bulge below its lid; vase relit 0.138 -> 0.113, pepper 0.215 -> 0.200. None: 4.
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion in voxels (session 17; :class:`appfusion.geometry_pass.GeometryConfig`);
-        None (default): tracking's 4. A ray that hits an overhanging edge writes "behind the surface"
+        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` where the object curves tightly. A ray that hits an overhanging edge writes "behind the surface"
         into the free space under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm
         below its lid at 4 voxels, 0.15-0.4 mm at 2. Relit at 4 / 3 / 2 voxels (one run each):
         demo 0.0387 / 0.0384 / 0.0352, seed 3 0.057 / 0.058 / 0.066, vase (creases sharpened) 0.162 /
@@ -258,6 +262,7 @@ class ScanConfig:
     refuse_voxel_scale: float = 1.0
     refuse_fine_scale: float | None = 2.0 / 3.0
     refuse_trunc_voxels: float | None = None
+    refuse_fine_trunc_voxels: float | None = 2.0
     crease_radius_voxels: float | None = 2.5
     plane_snap: bool = True
     normal_refine_rounds: int = 0
@@ -496,7 +501,7 @@ class ScanRunner:
                                  f"{c.rho_d_pool_z!r}")
         if c.rgb_sampling not in ("nearest", "bilinear"):
             raise AppFusionError(f"scan config: rgb_sampling must be 'nearest' or 'bilinear', got {c.rgb_sampling!r}")
-        for name in ("refuse_trunc_voxels", "crease_radius_voxels"):
+        for name in ("refuse_trunc_voxels", "refuse_fine_trunc_voxels", "crease_radius_voxels"):
             v = getattr(c, name)
             if v is not None and not (np.isfinite(float(v)) and 1.0 <= float(v) <= 8.0):
                 raise AppFusionError(f"scan config: {name} must be None or in [1, 8] voxels, got {v}")
@@ -944,6 +949,8 @@ class ScanRunner:
                 gp = self.geometry.gp
                 if gp.refuse_scale not in (None, 1.0):
                     how += f"at {gp.fusion.config.voxel_size * 1e3:.1f} mm voxels"
+                    if getattr(gp, "fine_triggered", False):
+                        how += f", truncation {gp.fusion.config.trunc_voxels:g} voxels"
                     if gp.tight_fraction is not None:
                         how += (f": {gp.tight_fraction:.1%} of the object curves tighter than "
                                 f"{gp.config.refuse_fine_radius_voxels:g} voxels")
@@ -2031,6 +2038,7 @@ class _Geometry:
                               refuse_voxel_scale=float(config.refuse_voxel_scale),
                               refuse_fine_scale=config.refuse_fine_scale,
                               refuse_trunc_voxels=config.refuse_trunc_voxels,
+                              refuse_fine_trunc_voxels=config.refuse_fine_trunc_voxels,
                               crease_radius_voxels=config.crease_radius_voxels,
                               plane_snap=bool(config.plane_snap))
         fc = {} if surface else {"surface_max_incidence_deg": None}

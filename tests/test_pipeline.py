@@ -316,3 +316,23 @@ def test_a_cluster_whose_ir_lobe_runs_to_the_roughness_bound_is_diffuse(kinect_s
     assert any("ran to the roughness bound" in m and "diffuse only" in m for m in r2.messages), r2.messages
     assert res2.model == ["diffuse"] and (res2.rho_s == 0).all()
     assert not r2.rgb.specular.any()
+
+
+def test_the_fine_refusion_truncates_at_two_voxels_where_the_object_curves_tightly(kinect_sphere, tmp_path, monkeypatch):
+    """Where the first mesh curves tightly (the fine re-fusion's trigger, which never fires on the
+    capsules), the re-fusion also truncates at refuse_fine_trunc_voxels (2): a lid's rim no longer
+    writes 'behind the surface' 8 mm into the free space under it (the vase's neck bulge, session 26).
+    Elsewhere the truncation stays tracking's 4; refuse_trunc_voxels, when given, wins."""
+    import appfusion.geometry_pass as G
+
+    monkeypatch.setattr(G, "tight_curvature_fraction", lambda mesh, radius, k=32: 0.0)    # a capsule
+    r, _ = _run(kinect_sphere, tmp_path / "smooth", stop_at="ir")
+    assert not r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4
+    monkeypatch.setattr(G, "tight_curvature_fraction", lambda mesh, radius, k=32: 0.05)   # a tight rim
+    r, _ = _run(kinect_sphere, tmp_path / "tight", stop_at="ir")
+    gp = r.geometry.gp
+    assert gp.fine_triggered and gp.fusion.config.trunc_voxels == 2
+    assert abs(gp.fusion.config.voxel_size - gp._tracking_voxel * 2 / 3) < 1e-9
+    assert any("truncation 2 voxels" in m for m in r.messages), r.messages
+    r, _ = _run(kinect_sphere, tmp_path / "given", stop_at="ir", refuse_trunc_voxels=3)
+    assert r.geometry.gp.fusion.config.trunc_voxels == 3
