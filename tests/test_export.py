@@ -143,3 +143,34 @@ def test_info_describes_a_scan_output_folder(tmp_path, capsys):
     (tmp_path / "result.npz").write_bytes(b"not a zip")
     assert main(["info", str(tmp_path)]) == 2
     assert "not a readable scan result" in capsys.readouterr().err
+
+
+def test_manifold_mesh_lets_a_pinched_mesh_be_unwrapped():
+    """UVAtlas refuses a non-manifold mesh (a TSDF fused from few noisy frames made one: session 26):
+    export removes the triangles on non-manifold edges and all but the largest fan at a pinched
+    vertex, and the rest unwraps; a manifold mesh passes unchanged."""
+    import open3d as o3d
+
+    from appfusion.export import bake_textures, manifold_mesh
+
+    grid = o3d.geometry.TriangleMesh.create_box(0.02, 0.02, 0.02).subdivide_midpoint(2)
+    V = np.asarray(grid.vertices, np.float32)
+    F = np.asarray(grid.triangles, np.int64)
+    V0, F0 = manifold_mesh(V, F)
+    assert np.array_equal(V0, V) and np.array_equal(F0, F)
+    # a second box touching the first at one corner only (a pinched vertex), and a fin on an edge
+    V2 = np.vstack([V, V + np.float32(0.02)])
+    corner = int(np.argmin(np.linalg.norm(V2[len(V):] - V.max(0), axis=1))) + len(V)
+    far = int(np.argmin(np.linalg.norm(V - V.max(0), axis=1)))
+    F2 = np.vstack([F, np.where(F + len(V) == corner, far, F + len(V))])
+    e = F[0]
+    fin = np.vstack([V2, [[0.01, -0.01, 0.03]]]).astype(np.float32)
+    F3 = np.vstack([F2, [[e[0], e[1], len(V2)]]])
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(fin.astype(np.float64)), o3d.utility.Vector3iVector(F3.astype(np.int32)))
+    assert not m.is_vertex_manifold() and not m.is_edge_manifold()
+    Vm, Fm = manifold_mesh(fin, F3)
+    mm = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(Vm.astype(np.float64)), o3d.utility.Vector3iVector(Fm.astype(np.int32)))
+    assert mm.is_vertex_manifold() and mm.is_edge_manifold()
+    assert len(F) <= len(Fm) < len(F3)                       # one box's triangles are all kept at least
+    uvs, tex = bake_textures(Vm, Fm, {"a": np.ones((len(Vm), 3), np.float32)}, size=32)
+    assert uvs.shape == (len(Fm), 3, 2) and tex["a"].shape == (32, 32, 3)
