@@ -111,16 +111,18 @@ class GeometryConfig:
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion, in its voxels (None, the default: tracking's
         ``FusionConfig.trunc_voxels``, 4, or ``refuse_fine_trunc_voxels`` where the object curves
-        tightly). A ray that hits an overhanging edge (a lid's rim seen from above) writes "behind
+        tightly, if given). A ray that hits an overhanging edge (a lid's rim seen from above) writes "behind
         the surface" into the free space under the edge for a truncation's length along the ray, and
         the views that see that space are few: the vase's neck bulged out 1.5-2.4 mm over the 10 mm
         below its lid at 4 voxels, 0.15-0.4 mm at 2 (session 17). 2 everywhere is not the default:
         seed 3's relit error rose 0.057 -> 0.066 (docs/geometry-pass.md).
     refuse_fine_trunc_voxels : float or None
         The re-fusion's truncation where ``refuse_fine_scale`` applies (the object curves tightly;
-        never on the capsules), unless ``refuse_trunc_voxels`` is given (session 26: 2; None: 4).
-        With the planar faces snapped (``plane_snap``), the vase's relit 0.138 -> 0.113 and its neck's
-        normals 2-6 mm below the lid 10-18 -> 2.5-3.6 degrees; the pepper 0.215 -> 0.200.
+        never on the capsules), unless ``refuse_trunc_voxels`` is given (session 26; None, the
+        default: 4). At 2, with the planar faces snapped (``plane_snap``), the vase's relit 0.138 ->
+        0.113 and its neck's normals 2-6 mm below the lid 10-18 -> 2.5-3.6 degrees; the pepper 0.215
+        -> 0.200. Not the default: on sessions of a few noisy frames the fine re-fusion triggers on
+        the noise, and at 2 voxels a 12-frame sphere's alpha read 0.180 for 0.12 (0.12 +- 35 % at 4).
     min_component : float
         Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
         are dropped (flying fragments).
@@ -154,7 +156,7 @@ class GeometryConfig:
     refuse_fine_radius_voxels: float = 6.5
     refuse_fine_fraction: float = 0.01
     refuse_trunc_voxels: float | None = None
-    refuse_fine_trunc_voxels: float | None = 2.0
+    refuse_fine_trunc_voxels: float | None = None
     min_component: float = 0.02
     hole_radius: float = 0.01
     seed: int = 0

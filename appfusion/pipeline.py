@@ -55,7 +55,7 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
 #: configuration; 24: rho_d corrected for the noise clipped at black; 25: the colour split only where
 #: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse; 27: normals of
-#: planar faces snapped to their plane; 28: the fine re-fusion truncates at 2 voxels)
+#: planar faces snapped to their plane; 28: refuse_fine_trunc_voxels in the configuration)
 CHECKPOINT_VERSION = 28
 
 
@@ -174,11 +174,13 @@ class ScanConfig:
         none), the re-fusion runs at this fraction of tracking's voxel (2/3: 2 mm for 3). None: never.
     refuse_fine_trunc_voxels : float or None
         The re-fusion's truncation where the object curves tightly (``refuse_fine_scale`` applies),
-        unless ``refuse_trunc_voxels`` is given (session 26; ``GeometryConfig``): 2 removes the vase's
-        neck bulge below its lid; vase relit 0.138 -> 0.113, pepper 0.215 -> 0.200. None: 4.
+        unless ``refuse_trunc_voxels`` is given (session 26; ``GeometryConfig``; None, the default:
+        4). 2 removes the vase's neck bulge below its lid: vase relit 0.138 -> 0.113, pepper 0.215 ->
+        0.200; but on a few noisy frames the trigger fires on noise and a 12-frame sphere's alpha read
+        0.180 for 0.12, so it is not the default.
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion in voxels (session 17; :class:`appfusion.geometry_pass.GeometryConfig`);
-        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` where the object curves tightly. A ray that hits an overhanging edge writes "behind the surface"
+        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` (if given) where the object curves tightly. A ray that hits an overhanging edge writes "behind the surface"
         into the free space under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm
         below its lid at 4 voxels, 0.15-0.4 mm at 2. Relit at 4 / 3 / 2 voxels (one run each):
         demo 0.0387 / 0.0384 / 0.0352, seed 3 0.057 / 0.058 / 0.066, vase (creases sharpened) 0.162 /
@@ -262,7 +264,7 @@ class ScanConfig:
     refuse_voxel_scale: float = 1.0
     refuse_fine_scale: float | None = 2.0 / 3.0
     refuse_trunc_voxels: float | None = None
-    refuse_fine_trunc_voxels: float | None = 2.0
+    refuse_fine_trunc_voxels: float | None = None
     crease_radius_voxels: float | None = 2.5
     plane_snap: bool = True
     normal_refine_rounds: int = 0

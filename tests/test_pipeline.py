@@ -319,20 +319,23 @@ def test_a_cluster_whose_ir_lobe_runs_to_the_roughness_bound_is_diffuse(kinect_s
 
 
 def test_the_fine_refusion_truncates_at_two_voxels_where_the_object_curves_tightly(kinect_sphere, tmp_path, monkeypatch):
-    """Where the first mesh curves tightly (the fine re-fusion's trigger, which never fires on the
-    capsules), the re-fusion also truncates at refuse_fine_trunc_voxels (2): a lid's rim no longer
-    writes 'behind the surface' 8 mm into the free space under it (the vase's neck bulge, session 26).
-    Elsewhere the truncation stays tracking's 4; refuse_trunc_voxels, when given, wins."""
+    """With refuse_fine_trunc_voxels (2; not the default), where the first mesh curves tightly (the
+    fine re-fusion's trigger, which never fires on the capsules) the re-fusion also truncates at 2
+    voxels: a lid's rim no longer writes 'behind the surface' 8 mm into the free space under it (the
+    vase's neck bulge, session 26). Elsewhere the truncation stays tracking's 4; refuse_trunc_voxels,
+    when given, wins; by default it stays 4 everywhere."""
     import appfusion.geometry_pass as G
 
     monkeypatch.setattr(G, "tight_curvature_fraction", lambda mesh, radius, k=32: 0.0)    # a capsule
-    r, _ = _run(kinect_sphere, tmp_path / "smooth", stop_at="ir")
+    r, _ = _run(kinect_sphere, tmp_path / "smooth", stop_at="ir", refuse_fine_trunc_voxels=2)
     assert not r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4
     monkeypatch.setattr(G, "tight_curvature_fraction", lambda mesh, radius, k=32: 0.05)   # a tight rim
-    r, _ = _run(kinect_sphere, tmp_path / "tight", stop_at="ir")
+    r, _ = _run(kinect_sphere, tmp_path / "default", stop_at="ir")
+    assert r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4
+    r, _ = _run(kinect_sphere, tmp_path / "tight", stop_at="ir", refuse_fine_trunc_voxels=2)
     gp = r.geometry.gp
     assert gp.fine_triggered and gp.fusion.config.trunc_voxels == 2
     assert abs(gp.fusion.config.voxel_size - gp._tracking_voxel * 2 / 3) < 1e-9
     assert any("truncation 2 voxels" in m for m in r.messages), r.messages
-    r, _ = _run(kinect_sphere, tmp_path / "given", stop_at="ir", refuse_trunc_voxels=3)
+    r, _ = _run(kinect_sphere, tmp_path / "given", stop_at="ir", refuse_trunc_voxels=3, refuse_fine_trunc_voxels=2)
     assert r.geometry.gp.fusion.config.trunc_voxels == 3
