@@ -28,7 +28,7 @@ import numpy as np
 
 from .errors import EstimationError
 from .frame import linear_to_srgb
-from .result import ScanResult
+from .result import ScanResult, json_float
 
 #: distinct colours for cluster maps (RGB 0..1)
 CLUSTER_COLOURS = np.array([
@@ -286,7 +286,7 @@ def export_result(result: ScanResult, out_dir: str | os.PathLike, texture_size: 
         "appfusion": {"model": "rho_d/pi + rho_s * Ward(alpha), Ward 1992 isotropic",
                       "rho_s": result.rho_s.tolist(), "alpha": result.alpha.tolist(),
                       "alpha_sigma": result.alpha_sigma.tolist(),
-                      "rho_s_sigma": [[None if not np.isfinite(v) else float(v) for v in row]
+                      "rho_s_sigma": [[json_float(v) for v in row]
                                       for row in result.rho_s_sigma],
                       "roughness_mapping": "gltf_roughness = sqrt(ward_alpha)"}}
     glb = out / "object.glb"

@@ -19,6 +19,17 @@ import numpy as np
 from .errors import SessionFormatError
 
 
+def json_float(v: Any) -> float | None:
+    """``float(v)``, or None for NaN, infinity or a value that is no number (JSON has none of these):
+    how a result's figures that were not estimated go into ``object.glb``'s extras, ``appfusion info
+    --json`` and the bench report."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return None
+    return f if np.isfinite(f) else None
+
+
 @dataclass
 class ScanResult:
     """Geometry and appearance of a scanned object (world = marker frame, metres).

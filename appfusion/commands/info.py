@@ -158,20 +158,17 @@ def describe_result(path: Path) -> dict[str, Any]:
     """A JSON-able description of a scan's output (:class:`~appfusion.result.ScanResult` and the files
     beside it). Uncertainties that were not estimated are None."""
     from appfusion.result import ScanResult
+    from appfusion.result import json_float
 
     res = ScanResult.load(path)
     folder = path.parent
 
-    def num(v):
-        v = float(v)
-        return v if np.isfinite(v) else None
-
     clusters = []
     for c in range(res.n_clusters):
         clusters.append({"cluster": c, "model": res.model[c], "points": int(np.sum(res.labels == c)),
-                         "alpha": num(res.alpha[c]), "alpha_sigma": num(res.alpha_sigma[c]),
-                         "rho_s": [num(v) for v in res.rho_s[c]],
-                         "rho_s_sigma": [num(v) for v in res.rho_s_sigma[c]]})
+                         "alpha": json_float(res.alpha[c]), "alpha_sigma": json_float(res.alpha_sigma[c]),
+                         "rho_s": [json_float(v) for v in res.rho_s[c]],
+                         "rho_s_sigma": [json_float(v) for v in res.rho_s_sigma[c]]})
     metrics = None
     if (folder / "metrics.json").is_file():
         try:
@@ -181,7 +178,7 @@ def describe_result(path: Path) -> dict[str, Any]:
     files = sorted(f.name for f in folder.iterdir() if f.is_file() and f.suffix in
                    (".glb", ".obj", ".mtl", ".ply", ".png", ".exr", ".hdr", ".html", ".json", ".npz"))
     return {"path": str(folder), "result": str(path), "points": int(len(res.positions)),
-            "rho_d_median": [num(v) for v in np.median(res.rho_d, axis=0)] if len(res.rho_d) else None,
+            "rho_d_median": [json_float(v) for v in np.median(res.rho_d, axis=0)] if len(res.rho_d) else None,
             "clusters": clusters,
             "mesh": {"vertices": int(len(res.mesh_vertices)), "faces": int(len(res.mesh_faces))},
             "envmap": None if res.envmap is None else list(res.envmap.shape),

@@ -67,6 +67,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from appfusion.result import json_float
+
 #: quick / full budgets, seconds (each quick scan takes ~25-40 s on 2 shared cores: the two-material
 #: session's, then the matte scene's)
 BUDGET_S = (90.0, 1500.0)
@@ -373,12 +375,6 @@ def _scan_with_fallback(session: Path, out: Path, config, info: dict, log) -> di
         return timed_scan(session, out, config, log=None)
 
 
-def _number(v) -> float | None:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return None
-    return f if f == f and abs(f) != float("inf") else None
 
 
 def run(ctx) -> dict[str, float | None]:
@@ -487,18 +483,18 @@ def run(ctx) -> dict[str, float | None]:
         for k in MATTE_METRICS.values():
             ctx.note(k, "mirror-ball radius given: the sphere fit failed (extra.scan.matte.fallback)")
 
-    got: dict[str, float | None] = {"relit_rel_rmse": _number(m.get("relit_rel_rmse")),
+    got: dict[str, float | None] = {"relit_rel_rmse": json_float(m.get("relit_rel_rmse")),
                                     "demo_scan_s": round(first["wall_s"], 2),
                                     "skip_lighting_saving": saving, "skip_wavelet_saving": wav}
     for k, name in SCAN_METRICS.items():
-        got[name] = _number(m.get(k))
+        got[name] = json_float(m.get(k))
     for k, name in MATTE_METRICS.items():
-        got[name] = _number(mm.get(k))
+        got[name] = json_float(mm.get(k))
     # the IR calibration's emitter-pattern map (calibration.ir_pattern): the spread of held-out sheet
     # pixels' intensity over the map's prediction (without the map: the pattern's own, ~0.45)
     prof_path = out / "state" / "ir_profile.json"
     pat = json.loads(prof_path.read_text()).get("fit", {}).get("pattern") if prof_path.exists() else None
-    got["scan_ir_pattern_heldout_cv"] = _number(pat.get("heldout_cv")) if pat else None
+    got["scan_ir_pattern_heldout_cv"] = json_float(pat.get("heldout_cv")) if pat else None
     if pat:
         info["ir_pattern"] = pat
     return got
