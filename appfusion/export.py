@@ -101,6 +101,8 @@ def manifold_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     vertices (V', 3) float32, faces (F', 3) int64: unchanged when the mesh is manifold already.
     """
     import open3d as o3d
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
     def legacy(V, F):
         return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(V, np.float64)),
@@ -118,23 +120,16 @@ def manifold_mesh(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
             break
         drop = np.zeros(len(F), bool)
         for v in bad:
+            # the fans around v: its triangles joined where they share an edge through v, i.e. one of
+            # their two other vertices (connected components of the triangle-vertex graph)
             tris = np.flatnonzero((F == v).any(axis=1))
-            other = [set(F[t][F[t] != v].tolist()) for t in tris]   # a fan: triangles sharing an edge through v
-            group = -np.ones(len(tris), int)
-            g = 0
-            for i in range(len(tris)):
-                if group[i] >= 0:
-                    continue
-                group[i], stack = g, [i]
-                while stack:
-                    a = stack.pop()
-                    for b in np.flatnonzero(group < 0):
-                        if other[a] & other[b]:
-                            group[b] = g
-                            stack.append(b)
-                g += 1
-            largest = np.argmax(np.bincount(group))
-            drop[tris[group != largest]] = True
+            other = F[tris][F[tris] != v].reshape(-1, 2)
+            _, ov = np.unique(other, return_inverse=True)
+            nt = len(tris)
+            g = coo_matrix((np.ones(2 * nt), (np.repeat(np.arange(nt), 2), nt + ov.reshape(-1))),
+                           shape=(nt + ov.max() + 1,) * 2)
+            fan = connected_components(g, directed=False)[1][:nt]
+            drop[tris[fan != np.argmax(np.bincount(fan))]] = True
         m = legacy(np.asarray(m.vertices), F[~drop])
     m.remove_unreferenced_vertices()
     return np.asarray(m.vertices, np.float32), np.asarray(m.triangles).astype(np.int64)
