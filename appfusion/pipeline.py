@@ -180,8 +180,9 @@ class ScanConfig:
         0.180 for 0.12, so it is not the default.
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion in voxels (session 17; :class:`appfusion.geometry_pass.GeometryConfig`);
-        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` (if given) where the object curves tightly. A ray that hits an overhanging edge writes "behind the surface"
-        into the free space under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm
+        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` (if given) where the object
+        curves tightly. A ray that hits an overhanging edge writes "behind the surface" into the free
+        space under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm
         below its lid at 4 voxels, 0.15-0.4 mm at 2. Relit at 4 / 3 / 2 voxels (one run each):
         demo 0.0387 / 0.0384 / 0.0352, seed 3 0.057 / 0.058 / 0.066, vase (creases sharpened) 0.162 /
         0.183 / 0.145; so not the default (docs/geometry-pass.md).

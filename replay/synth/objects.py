@@ -363,7 +363,6 @@ def _two_material(detail: str, seed: int) -> ObjectModel:
                        {"shape": "capsule", "radius_m": r, "cap_centre_z_m": zc, "material_boundary_z_m": zb})
 
 
-
 def _matte(detail: str, seed: int) -> ObjectModel:
     """The two-material capsule wrapped in printed matte paper (one diffuse material, rho_s = 0)."""
     cap = _two_material(detail, seed)
@@ -383,6 +382,7 @@ def _matte(detail: str, seed: int) -> ObjectModel:
     mats = MaterialSet([Material("matte-paper", (0.0, 0.0, 0.0), 0.3, "ward", ir_rho_s=0.0)])
     return ObjectModel("matte", v, cap.faces, n, np.clip(rho, 0, 0.95), ir, np.zeros(len(v), np.int32), mats,
                        dict(cap.info, material="one diffuse material (rho_s = 0 in colour and IR)"))
+
 
 OBJECTS = {
     "sphere": lambda detail, seed: _sphere(detail, seed, "ward"),
