@@ -678,6 +678,7 @@ def snap_planes(positions: np.ndarray, normals: np.ndarray, voxel: float, k: int
         st["snapped"] += face["snapped"]
     return out
 
+
 # -- sampling (paper §4.1: "randomly sampling points with a probability proportional to the surface area")
 def sample_points(mesh, n: int = 100_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Sample points on a triangle mesh with probability proportional to area, with mesh normals.
