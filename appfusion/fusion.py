@@ -329,7 +329,7 @@ def downsample_depth(depth: np.ndarray, factor: int, max_jump: float = 0.03, min
 
     Parameters
     ----------
-    depth : (H, W) float array, metres, NaN invalid.
+    depth : (H, W) float array, metres; NaN, infinite and non-positive values are invalid.
     factor : int >= 1
     max_jump : float, metres.
     min_valid : float in (0, 1]
@@ -345,7 +345,7 @@ def downsample_depth(depth: np.ndarray, factor: int, max_jump: float = 0.03, min
     H, W = depth.shape
     h, w = H // f, W // f
     d = np.asarray(depth[: h * f, : w * f], np.float32)
-    valid = d > 0                                       # False for NaN
+    valid = np.isfinite(d) & (d > 0)                    # NaN, +-inf and <= 0 are no depth
     d0 = np.where(valid, d, np.float32(0))
     # block sums via OpenCV's area resampling (exact block means for integer factors)
     s = cv2.resize(d0, (w, h), interpolation=cv2.INTER_AREA)

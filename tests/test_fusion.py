@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from pathlib import Path
 
 import cv2
@@ -201,6 +202,14 @@ def test_downsample_depth_block_means():
         assert np.array_equal(np.isnan(out), np.isnan(expect))
         assert np.nanmax(np.abs(out - expect)) < 1e-6
         assert np.isnan(out[5, 6])                            # the block with the 0.5 / 1.0 jump
+    # an infinite or negative pixel is no depth either (it made its block infinite, with a warning)
+    bad = np.full((4, 4), 1.0, np.float32)
+    bad[0, 0], bad[2, 3] = np.inf, -1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        out = downsample_depth(bad, 2, min_valid=0.5)
+    assert np.array_equal(out, np.ones((2, 2), np.float32))
+    assert np.isnan(downsample_depth(bad, 2)[[0, 1], [0, 1]]).all()    # complete blocks only by default
 
 
 def test_pose_helpers():
