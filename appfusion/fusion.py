@@ -105,6 +105,17 @@ STATE_LOST = "lost"
 STATE_FIRST = "first"
 
 
+def mean_motion(T: np.ndarray, n: int) -> np.ndarray:
+    """The rigid motion that, repeated ``n`` times, approximates ``T`` (4x4): its rotation vector and
+    translation divided by ``n`` (exact for a pure rotation or translation; the frame-to-frame
+    motion over a gap of ``n`` frames)."""
+    out = orthonormalize(T)
+    rvec, _ = cv2.Rodrigues(out[:3, :3])
+    out[:3, :3], _ = cv2.Rodrigues(rvec / float(n))
+    out[:3, 3] /= float(n)
+    return out
+
+
 def orthonormalize(T: np.ndarray) -> np.ndarray:
     """The nearest rigid transform to a 4x4 matrix (rotation by SVD); stops round-off in chains of
     pose products from growing into a scale or shear."""
@@ -437,6 +448,12 @@ class FusionConfig:
         Lost if the inliers' point-to-plane RMSE is larger.
     max_jump_m, max_jump_deg : float
         Lost if the tracked pose differs from the prediction by more (per frame).
+    relocalise_velocity_frames : int
+        A frame relocalised at most this many frames after the last good one predicts the next
+        frame with the mean motion per frame over that gap (0: with no motion, as before). With
+        no motion, a sweep of 12 degrees per frame lost every other frame: each frame after a
+        relocalised one jumped a whole step from its prediction (the 30-frame quick matte session:
+        15 of 30 environment frames lost; 2 with it).
     block_resolution, block_count : int
         VoxelBlockGrid block edge (voxels) and initial block capacity.
     weight_threshold : float
@@ -491,6 +508,7 @@ class FusionConfig:
     omp_threads: int | None = 1
     max_jump_m: float = 0.08
     max_jump_deg: float = 12.0
+    relocalise_velocity_frames: int = 3
     block_resolution: int = 8
     block_count: int = 20000
     weight_threshold: float = 2.0
@@ -586,6 +604,7 @@ class TSDFFusion:
         self.pose = np.eye(4) if initial_pose is None else np.asarray(initial_pose, float).copy()
         self._last_good = self.pose.copy()
         self._velocity = np.eye(4)           # last frame-to-frame motion (camera-to-camera)
+        self._last_good_idx = 0              # frame number (0-based, this volume's) of _last_good
         self._frustum_blocks = None
         self._n_integrated = 0
         self._key_pose: np.ndarray | None = None   # pose of the last integrated frame
@@ -964,6 +983,7 @@ class TSDFFusion:
             self.integrate(d_roi, self.pose)
             ms["integrate"] = (time.perf_counter() - t1) * 1e3
             self._last_good = self.pose.copy()
+            self._last_good_idx = idx
             res = TrackResult(idx, STATE_FIRST, self.pose.copy(), integrated=True, ms=ms)
             self.results.append(res)
             return res
@@ -1009,9 +1029,15 @@ class TSDFFusion:
             self.results.append(res)
             return res
         self.lost = False
-        self._velocity = orthonormalize(invert_pose(prev) @ pose) if not relocalising else np.eye(4)
+        if not relocalising:
+            self._velocity = orthonormalize(invert_pose(prev) @ pose)
+        else:
+            gap = idx - self._last_good_idx
+            self._velocity = (mean_motion(invert_pose(prev) @ pose, gap)
+                              if 0 < gap <= cfg.relocalise_velocity_frames else np.eye(4))
         self.pose = pose
         self._last_good = pose.copy()
+        self._last_good_idx = idx
         t1 = time.perf_counter()
         d_roi = self._mask_roi(d_int, self.K_int, pose)
         blocks = None

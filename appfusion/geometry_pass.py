@@ -286,6 +286,11 @@ class GeometryPass:
         self.box: ObjectBox | None = None
         self._last_key: tuple[int, float] | None = None
         self._roi_set = False
+        #: circles seen before all four were in one frame: weighted sums of their world centres and
+        #: the weights (at most four rows; :meth:`_provisional_anchors`)
+        self._prov_sums = np.zeros((0, 3))
+        self._prov_weights = np.zeros(0)
+        self._prov_since: int | None = None          # len(self.states) when the first of them was seen
 
     # -- helpers ----------------------------------------------------------------------------------
     def _skip(self, frame: Frame, reason: str) -> FrameState:
@@ -334,9 +339,12 @@ class GeometryPass:
         C = self.tracker.centers
         dist = np.linalg.norm(W[:, None] - C[None], axis=2)
         j = dist.argmin(1)
-        # while lost the prediction may be far off: trust the numbering of a complete detection
-        if det.complete and fu.lost and pose is None:
-            j = self._match_complete(det)
+        # while lost the prediction may be far off (the last good pose, a fast sweep's 20-30 degrees
+        # away): match three or more circles by their shape, not by where the stale pose puts them
+        if fu.lost and pose is None and 3 <= det.n <= len(C):
+            j = self._match_lost(det)
+            if j is None:
+                return None
             keep = np.ones(det.n, bool)
         else:
             dj = dist[np.arange(det.n), j]
@@ -354,22 +362,96 @@ class GeometryPass:
         # it (FusionConfig.anchor_normal_weight)
         return det.centers[keep], C[j[keep]], self.tracker.normal
 
-    def _match_complete(self, det: MarkerDetection) -> np.ndarray:
-        """Circle numbers of a complete detection while tracking is lost.
+    def _provisional_anchors(self, det: MarkerDetection) -> tuple[np.ndarray, np.ndarray] | None:
+        """Anchors before the marker frame exists: each detected centre paired with the nearest circle
+        seen so far (:meth:`_update_provisional`) through the predicted pose, within the distance
+        :meth:`_anchors` allows; None if none pairs.
 
-        The four circles form a square, so all four cyclic shifts of the numbering fit the fused
-        centres equally well; the shift whose camera pose (rigid fit) is closest in rotation to
-        the last good pose wins (the camera has not turned 45 degrees about the table while lost).
+        A pass that starts with three circles in view has no marker frame until a frame shows all
+        four, and depth alone does not fix a rotation about the axis of an object that is a surface
+        of revolution standing on the plane. On the 32-frame quick matte session the geometry pass
+        tracked 25 frames that way as "ok" while the pose turned 11 degrees a frame away from the
+        truth (1 m off by the 20th); with the circles seen so far as anchors it follows the truth.
         """
+        if not (self.config.use_anchors and det.n and len(self._prov_weights)):
+            return None
+        P = self._prov_sums / self._prov_weights[:, None]
+        W = transform_points(self.fusion.predicted_pose(), det.centers)
+        dist = np.linalg.norm(W[:, None] - P[None], axis=2)
+        j = dist.argmin(1)
+        keep = dist[np.arange(det.n), j] < max(3 * self.marker_config.radius_m, 0.05)
+        if not keep.any() or len(set(j[keep])) < keep.sum():
+            return None
+        return det.centers[keep], P[j[keep]]
+
+    def _backfill_marker_poses(self) -> None:
+        """Give the frames tracked before the marker frame existed, anchored on the circles seen so
+        far (:meth:`_provisional_anchors`), their marker-frame pose once it does, so that re-fusion and
+        the appearance passes use them. Without those anchors such frames had come out 5-10 cm off
+        and were left out; the 32-frame quick matte session's geometry pass starts with 25 of them.
+        """
+        if self._prov_since is None:
+            return
+        W2M = invert_pose(self.tracker.marker_to_world())
+        for st in self.states[self._prov_since:]:
+            if st.ok and st.pose_marker is None and st.pose is not None:
+                st.pose_marker = W2M @ st.pose
+
+    def _update_provisional(self, det: MarkerDetection, pose: np.ndarray) -> None:
+        """Fuse a detection made from ``pose`` into the circles seen before the marker frame exists:
+        a centre within the tracker's match distance of one of them updates its weighted mean
+        (weights as :class:`~appfusion.markers.MarkerTracker`'s), another starts a new one while
+        there are fewer than four."""
+        W = transform_points(pose, det.centers)
+        w = self.tracker._weights(det)
+        md = self.tracker.match_dist or 1.5 * self.marker_config.radius_m
+        for k in range(det.n):
+            if not (np.all(np.isfinite(W[k])) and w[k] > 0):
+                continue
+            if len(self._prov_weights):
+                P = self._prov_sums / self._prov_weights[:, None]
+                d = np.linalg.norm(P - W[k], axis=1)
+                i = int(d.argmin())
+                if d[i] < md:
+                    self._prov_sums[i] += w[k] * W[k]
+                    self._prov_weights[i] += w[k]
+                    continue
+            if len(self._prov_weights) < 4:
+                self._prov_sums = np.vstack([self._prov_sums, w[k] * W[k]])
+                self._prov_weights = np.append(self._prov_weights, w[k])
+                if self._prov_since is None:
+                    self._prov_since = len(self.states)
+
+    def _match_lost(self, det: MarkerDetection, tol_m: float | None = None) -> np.ndarray | None:
+        """Fused circle numbers of three or more detected circles while tracking is lost, or None.
+
+        Every one-to-one assignment of the detected centres to the fused ones whose rigid fit
+        (:func:`~appfusion.fusion.kabsch`) leaves an RMS residual below ``tol_m`` (default half a
+        circle's radius, at least 5 mm) is a candidate. The circles form a square, so several are
+        (the four cyclic shifts of a complete detection, the four corners of three circles' right
+        triangle, and their flips through the plane); the one whose camera rotation is closest to the
+        last good pose's wins: the camera has not turned 45 degrees about the table while lost.
+        Matching by nearest circle through that stale pose instead paired three circles wrongly after
+        a 24-degree gap, and the relocalised pose ran away (the 30-frame quick matte session).
+        A complete detection with the key circle (``MarkerConfig.key_radius_m``) keeps its own,
+        absolute numbering.
+        """
+        from itertools import permutations
+
         from .fusion import rotation_angle_deg
-        if self.marker_config.key_radius_m:
-            return np.arange(4)  # the key circle makes a complete detection's numbering absolute
         C = self.tracker.centers
+        if self.marker_config.key_radius_m and det.complete:
+            return np.arange(len(C))
+        if tol_m is None:
+            tol_m = max(0.5 * self.marker_config.radius_m, 0.005)
         last = self.fusion.predicted_pose()
-        best, best_ang = np.arange(4), np.inf
-        for s in range(4):
-            perm = np.roll(np.arange(4), s)
+        best, best_ang = None, np.inf
+        for perm in permutations(range(len(C)), det.n):
+            perm = np.array(perm)
             T = kabsch(det.centers, C[perm])
+            r = transform_points(T, det.centers) - C[perm]
+            if np.sqrt(np.mean(np.sum(r * r, axis=1))) > tol_m:
+                continue
             ang = rotation_angle_deg(last[:3, :3].T @ T[:3, :3])
             if ang < best_ang:
                 best, best_ang = perm, ang
@@ -421,10 +503,18 @@ class GeometryPass:
                 self.tracker.update(det, self.fusion.pose)
                 if self.tracker.initialised:
                     self._set_roi()
-        anchors = self._anchors(det) if det is not None else None
+        if det is not None:
+            anchors = self._anchors(det) if self.tracker.initialised else self._provisional_anchors(det)
+        else:
+            anchors = None
         res = self.fusion.process(frame.depth, anchors)
+        was_initialised = self.tracker.initialised
         if det is not None and res.state in ("ok",) and self.fusion.n_frames > 1:
             self.tracker.update(det, res.pose)
+        if det is not None and res.state in ("ok", "first") and not self.tracker.initialised:
+            self._update_provisional(det, res.pose)
+        if self.tracker.initialised and not was_initialised:
+            self._backfill_marker_poses()
         if self.tracker.initialised and not self._roi_set:
             self._set_roi()
         ms = dict(res.ms)

@@ -55,8 +55,10 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: sharpened at creases, the re-fusion finer where the object curves tightly, its truncation in the
 #: configuration; 24: rho_d corrected for the noise clipped at black; 25: the colour split only where
 #: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse; 27: normals of
-#: planar faces snapped to their plane; 28: refuse_fine_trunc_voxels in the configuration)
-CHECKPOINT_VERSION = 28
+#: planar faces snapped to their plane; 28: refuse_fine_trunc_voxels in the configuration; 29: circles
+#: matched by their shape while lost, the motion over a relocalisation's gap, frames before the marker
+#: frame anchored on the circles seen so far and given marker-frame poses)
+CHECKPOINT_VERSION = 29
 
 
 def _broad_lobe(alpha) -> np.ndarray:

@@ -736,3 +736,77 @@ def test_tight_curvature_fraction_tells_a_tight_rim_from_a_capsule():
     noisy.vertices = o3d.utility.Vector3dVector(v * (1 + rng.normal(0, 5e-4, (len(v), 1))))
     assert tight_curvature_fraction(noisy, 0.02) < 0.01
     assert tight_curvature_fraction(o3d.geometry.TriangleMesh(), 0.02) == 0.0
+
+
+def test_a_fast_sweep_loses_one_frame_not_every_other():
+    """14 degrees a frame, over the 12-degree jump limit: the second frame is lost and relocalised on
+    the circles; predicting the next frame with the motion per frame over that gap
+    (``relocalise_velocity_frames``) keeps the rest tracked. Predicting no motion after each
+    relocalisation lost every other frame (and the 30-frame quick matte session's environment
+    pass 15 of its 30 frames)."""
+    s = make_sequence(12, 320, 240, seed=1, sweep_deg=150.0)
+    lost = {}
+    for v in (0, 3):
+        gp = GeometryPass(GeometryConfig(fusion=FusionConfig(relocalise_velocity_frames=v)))
+        st = [gp.add_frame(f) for f in s.frames]
+        lost[v] = [i for i, x in enumerate(st) if x.state == "lost"]
+        if v == 3:
+            ok = [i for i, x in enumerate(st) if x.ok]
+            rel = [invert_pose(st[0].pose) @ st[i].pose for i in ok]
+            true = [invert_pose(s.poses[0]) @ s.poses[i] for i in ok]
+            err = max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(rel, true))
+            assert err < 0.005, f"{err * 1e3:.1f} mm"
+    assert len(lost[0]) >= 5, lost      # the old prediction: every other frame
+    assert len(lost[3]) <= 1, lost
+
+
+def test_mean_motion_repeated_gives_the_motion_back():
+    from appfusion.fusion import mean_motion
+
+    T = np.eye(4)
+    T[:3, :3], _ = cv2.Rodrigues(np.array([0.1, -0.35, 0.2]))
+    T[:3, 3] = [0.03, -0.02, 0.05]
+    M = mean_motion(T, 3)
+    assert np.allclose(np.linalg.matrix_power(M, 3)[:3, :3], T[:3, :3], atol=1e-9)
+    assert abs(rotation_angle_deg(M[:3, :3]) - rotation_angle_deg(T[:3, :3]) / 3) < 1e-9
+    assert np.allclose(M[:3, 3] * 3, T[:3, 3])
+    assert np.allclose(mean_motion(T, 1), T)
+
+
+def test_a_pass_that_starts_with_three_circles_in_view_is_anchored_on_them(monkeypatch):
+    """Depth of the bare plane (no object: depth cannot fix the camera's slide along it) and only
+    three circles found in the first seven frames: tracking is anchored on the circles seen so far
+    (unanchored, it stood still while the camera moved 43 mm a frame), and once the fourth circle
+    defines the marker frame those seven frames get their marker-frame poses."""
+    from dataclasses import replace
+
+    import appfusion.geometry_pass as G
+
+    s = make_sequence(10, 320, 240, seed=2, sweep_deg=45.0)
+    real = G.detect_markers
+
+    def three_circles_first(frame, config=None, stream=None):
+        d = real(frame, config, stream)
+        if frame.index < 7 and d.n == 4:
+            keep = np.arange(4) != int(np.argmin(d.pixels[:, 0]))          # hide the leftmost circle
+            d = replace(d, centers=d.centers[keep], radii=d.radii[keep], pixels=d.pixels[keep], complete=False)
+        return d
+
+    monkeypatch.setattr(G, "detect_markers", three_circles_first)
+    gp = GeometryPass()
+    states = []
+    for i, f in enumerate(s.frames):
+        d = f.depth.copy()
+        K = f.depth_intrinsics
+        v, u = np.mgrid[0:d.shape[0], 0:d.shape[1]]
+        X = np.stack([(u - K.cx) / K.fx * d, (v - K.cy) / K.fy * d, d], -1).reshape(-1, 3)
+        d[transform_points(s.poses[i], X)[:, 2].reshape(d.shape) > 0.003] = np.nan     # the plane alone
+        states.append(gp.add_frame(f.replace(depth=d)))
+    assert [st.markers_complete for st in states] == [False] * 7 + [True] * 3
+    assert all(st.ok for st in states)
+    for i, st in enumerate(states):
+        rel = invert_pose(states[0].pose) @ st.pose
+        true = invert_pose(s.poses[0]) @ s.poses[i]
+        assert np.linalg.norm(rel[:3, 3] - true[:3, 3]) < 0.005, i
+        assert st.pose_marker is not None, i
+        assert np.linalg.norm(st.pose_marker[:3, 3] - s.poses[i][:3, 3]) < 0.005, i

@@ -124,3 +124,71 @@ def test_a_circle_detected_twice_keeps_the_frame_anchored():
     assert len(src) == 3
     assert np.allclose(dst, C[[0, 1, 3]]) and np.allclose(src, seen[:3])
     assert np.allclose(normal, [0, 0, 1])   # the support plane's normal, for the anchors' weights
+
+
+def _lost_pass_with_square(stale_pose):
+    from types import SimpleNamespace
+
+    from appfusion.geometry_pass import GeometryPass
+
+    gp = GeometryPass()
+    C = np.array([[0.15, -0.15, 0.0], [0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0]])
+    gp.tracker.sums[:] = C
+    gp.tracker.counts[:] = 1
+    gp.tracker.weights[:] = 1
+    gp.tracker.normal_sum[:] = [0, 0, 2.0]
+    gp.fusion = SimpleNamespace(predicted_pose=lambda: stale_pose.copy(), lost=True)
+    return gp, C
+
+
+def _orbit_pose(azimuth_deg, radius=0.65, height=0.45):
+    """Camera-to-world pose on an orbit about the square's centre, looking at it (z forward)."""
+    a = np.radians(azimuth_deg)
+    eye = np.array([radius * np.cos(a), radius * np.sin(a), height])
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+@pytest.mark.parametrize("seen", [[0, 1, 2], [1, 3, 0], [2, 3, 1, 0]])
+def test_circles_seen_while_lost_are_matched_by_their_shape(seen):
+    """Three or four circles in a frame after tracking was lost 30 degrees of orbit ago: each one is
+    paired with the fused circle it is, found from the square's shape and the last good pose's
+    rotation, not from where that stale pose puts it (9-16 cm off: too far for the nearest-circle
+    rule, which kept fewer than three anchors or none, and the relocalised pose ran away on the
+    30-frame quick matte session)."""
+    from appfusion.frame import invert_pose, transform_points
+    from appfusion.markers import MarkerDetection
+
+    true, stale = _orbit_pose(40.0), _orbit_pose(10.0)
+    gp, C = _lost_pass_with_square(stale)
+    rng = np.random.default_rng(len(seen))
+    cam = transform_points(invert_pose(true), C[seen]) + rng.normal(0, 0.001, (len(seen), 3))
+    det = MarkerDetection(cam, np.full(len(seen), 0.02), np.zeros((len(seen), 2)), np.array([0, 0, 1.0]), 0.0,
+                          len(seen) == 4, "ir")
+    src, dst, _ = gp._anchors(det)
+    assert len(src) == len(seen)
+    assert np.allclose(dst, C[seen])
+    # the nearest-circle rule through the stale pose would not have given these anchors
+    W = transform_points(stale, cam)
+    d = np.linalg.norm(W[:, None] - C[None], axis=2)
+    assert not (d.min(1) < 0.06).all() or not np.array_equal(d.argmin(1), seen)
+
+
+def test_circles_that_fit_no_square_give_no_anchors_while_lost():
+    """A false circle among three (a reflection, 7 cm from where any circle could be): no one-to-one
+    assignment fits the square, so the frame relocalises without anchors rather than on wrong ones."""
+    from appfusion.frame import invert_pose, transform_points
+    from appfusion.markers import MarkerDetection
+
+    true = _orbit_pose(40.0)
+    gp, C = _lost_pass_with_square(_orbit_pose(10.0))
+    pts = np.vstack([C[[0, 1]], [[0.0, 0.07, 0.0]]])
+    cam = transform_points(invert_pose(true), pts)
+    det = MarkerDetection(cam, np.full(3, 0.02), np.zeros((3, 2)), np.array([0, 0, 1.0]), 0.0, False, "ir")
+    assert gp._anchors(det) is None
