@@ -2069,9 +2069,10 @@ class _Geometry:
         res = self.gp.result(n_points=n_points)
         V = np.asarray(res.mesh.vertices, np.float32)
         F = np.asarray(res.mesh.triangles, np.int32)
-        # only frames tracked once the four circles had fixed the marker frame: the frames before it
-        # (e.g. the first two of the synthetic demo's geometry pass, three circles in view) came out
-        # 5-10 cm off after the final marker transform, and their IR samples only added wrong data
+        # only frames with a marker-frame pose: those tracked once the four circles had fixed the
+        # marker frame, and those before it anchored on the circles seen so far (session 27: the first
+        # two of the synthetic demo's geometry pass show three circles; unanchored, such frames came
+        # out 5-10 cm off after the final marker transform and were left out here),
         # and only frames tracked: a lost frame's state keeps the last good pose (the previous frame's,
         # 9 cm away on the --quick bench's coarse orbit), which is no pose of this frame
         since = np.array([st.pose_marker is not None and st.ok for st in res.states], bool)
