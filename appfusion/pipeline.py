@@ -57,8 +57,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: the lobe varies; 26: a cluster whose IR lobe runs to the roughness bound is diffuse; 27: normals of
 #: planar faces snapped to their plane; 28: refuse_fine_trunc_voxels in the configuration; 29: circles
 #: matched by their shape while lost, the motion over a relocalisation's gap, frames before the marker
-#: frame anchored on the circles seen so far and given marker-frame poses)
-CHECKPOINT_VERSION = 29
+#: frame anchored on the circles seen so far and given marker-frame poses; 30: those poses only where
+#: the frames' own circles confirm them)
+CHECKPOINT_VERSION = 30
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -940,6 +941,10 @@ class ScanRunner:
             self._publish(tracking=track.state, markers_visible=track.markers_visible)
         if lost:
             self._note(f"geometry: tracking lost in {lost} frames (not fused; the scan resumed when the view returned)")
+        rejected = self.geometry.gp.backfill_rejected
+        if rejected:
+            self._note(f"geometry: {rejected} frames tracked before all four circles were in view left out: their "
+                       "circles did not confirm the tracked pose")
         if cfg.refuse_geometry:
             rounds = int(cfg.refuse_rounds)
             t0 = time.perf_counter()

@@ -810,3 +810,43 @@ def test_a_pass_that_starts_with_three_circles_in_view_is_anchored_on_them(monke
         assert np.linalg.norm(rel[:3, 3] - true[:3, 3]) < 0.005, i
         assert st.pose_marker is not None, i
         assert np.linalg.norm(st.pose_marker[:3, 3] - s.poses[i][:3, 3]) < 0.005, i
+
+
+def test_frames_before_the_marker_frame_get_its_pose_only_where_their_circles_confirm_it(monkeypatch):
+    """The back-filled marker-frame poses of frames tracked before the marker frame existed are
+    checked against each frame's own circles: one whose tracked pose is 30 degrees off (a chain of
+    poses broken by a wrong relocalisation, as on the 12-frames-a-pass synthetic Kinect sphere) gets
+    none, nor does the frame without circles right after it; a frame without circles between two
+    confirmed ones keeps its pose."""
+    from dataclasses import replace
+
+    import appfusion.geometry_pass as G
+
+    s = make_sequence(10, 320, 240, seed=2, sweep_deg=45.0)
+    real = G.detect_markers
+
+    def three_circles_first(frame, config=None, stream=None):
+        d = real(frame, config, stream)
+        if frame.index < 7 and d.n == 4:
+            keep = np.arange(4) != int(np.argmin(d.pixels[:, 0]))
+            d = replace(d, centers=d.centers[keep], radii=d.radii[keep], pixels=d.pixels[keep], complete=False)
+        return d
+
+    monkeypatch.setattr(G, "detect_markers", three_circles_first)
+    gp = GeometryPass()
+    states = []
+    for i, f in enumerate(s.frames):
+        if i == 7:                                   # before the marker frame: break frame 2's pose
+            R = np.eye(4)
+            R[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.0, np.radians(30.0)]))[0]
+            states[2].pose = states[2].pose @ R
+            states[3].detection = None
+            states[5].detection = None
+        states.append(gp.add_frame(f))
+    assert [st.markers_complete for st in states] == [False] * 7 + [True] * 3
+    assert states[2].pose_marker is None and states[3].pose_marker is None
+    assert gp.backfill_rejected == 2
+    for i, st in enumerate(states):
+        if i not in (2, 3):
+            assert st.pose_marker is not None, i
+            assert np.linalg.norm(st.pose_marker[:3, 3] - s.poses[i][:3, 3]) < 0.005, i
