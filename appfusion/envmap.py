@@ -37,6 +37,7 @@ import numpy as np  # noqa: E402
 
 from . import octahedral as octa  # noqa: E402
 from .errors import AppFusionError, EstimationError  # noqa: E402
+from .frame import REC709_LUMA  # noqa: E402
 from .frame import Intrinsics, linear_to_srgb  # noqa: E402
 
 #: version of the .npz layout written by :meth:`EnvMap.save_npz`
@@ -377,7 +378,7 @@ class EnvMap:
         m = self.coverage if self.coverage.any() else self.known
         if not m.any():
             return 1.0
-        lum = self.radiance[m] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        lum = self.radiance[m] @ REC709_LUMA.astype(np.float32)
         med = float(np.median(lum))
         return 0.3 / med if med > 1e-12 else 1.0
 

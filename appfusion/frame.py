@@ -24,6 +24,8 @@ from .errors import AppFusionError
 
 STREAMS = ("depth", "ir", "rgb")
 RGB_ENCODINGS = ("srgb8", "linear")
+#: Rec. 709 luminance weights of linear RGB (the one grey value of a colour everywhere it is needed)
+REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ import open3d as o3d
 
 from .brdf import local_frame
 from .errors import AppFusionError, EstimationError
-from .frame import Frame, Intrinsics, invert_pose, transform_points
+from .frame import REC709_LUMA, Frame, Intrinsics, invert_pose, transform_points
 
 __all__ = ["MarkerConfig", "Ellipse", "MarkerDetection", "MarkerTracker", "ObjectBox", "view_weight",
            "detect_circles", "fit_plane_ransac", "circle_on_plane", "refine_circle", "number_square", "marker_frame",
@@ -146,7 +146,7 @@ class Ellipse:
 def _to_gray01(image: np.ndarray) -> np.ndarray:
     img = np.asarray(image, np.float32)
     if img.ndim == 3:
-        img = img @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        img = img @ REC709_LUMA.astype(np.float32)
     img = np.where(np.isfinite(img), img, 0)
     hi = float(np.percentile(img, 99.9))
     if hi <= 0:

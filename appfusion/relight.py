@@ -36,12 +36,12 @@ import numpy as np
 from . import octahedral as oc
 from .brdf import local_frame, sample_ward, ward, ward_pdf
 from .errors import AppFusionError
-from .frame import Intrinsics
+from .frame import REC709_LUMA, Intrinsics
 from .result import ScanResult
 
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
-    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+    return rgb @ REC709_LUMA
 
 
 class EnvSampler:

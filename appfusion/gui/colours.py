@@ -23,7 +23,7 @@ import numpy as np
 
 from ..brdf import ward
 from ..export import CLUSTER_COLOURS
-from ..frame import linear_to_srgb
+from ..frame import REC709_LUMA, linear_to_srgb
 
 COLOUR_MODES = ("clusters", "rho_d", "rho_s", "alpha", "appearance")
 #: colour of points whose attribute is not known yet (grey)
@@ -197,7 +197,7 @@ def rgb_image(frame) -> np.ndarray | None:
 def tonemap(img: np.ndarray, percentile: float = 99.0) -> np.ndarray:
     """HDR linear RGB -> uint8 sRGB, exposure set so the ``percentile`` luminance maps to 1."""
     x = np.nan_to_num(np.asarray(img, np.float32), nan=0.0, posinf=0.0)
-    lum = x @ np.array([0.2126, 0.7152, 0.0722], np.float32) if x.ndim == 3 else x
+    lum = x @ REC709_LUMA.astype(np.float32) if x.ndim == 3 else x
     ref = np.percentile(lum[lum > 0], percentile) if np.any(lum > 0) else 1.0
     return (linear_to_srgb(x / max(float(ref), 1e-12)) * 255 + 0.5).astype(np.uint8)
 

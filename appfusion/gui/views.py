@@ -13,6 +13,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from .. import octahedral as oc
 from ..brdf import ward_retro
+from ..frame import REC709_LUMA
 from . import colours as C
 from .paint import brush_select, qmatrix_to_numpy
 
@@ -200,7 +201,7 @@ class HBSABView(pg.GraphicsLayoutWidget):
 _SHORT = {"ir-calibration": "ir-cal", "environment": "env", "geometry": "geom"}
 
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+LUMINANCE = REC709_LUMA
 
 
 def _fmt(v: float, sig: float | None = None) -> str:
