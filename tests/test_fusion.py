@@ -773,26 +773,32 @@ def test_mean_motion_repeated_gives_the_motion_back():
     assert np.allclose(mean_motion(T, 1), T)
 
 
+def _three_circles_first(monkeypatch, n_frames: int) -> None:
+    """Make the geometry pass's marker detection hide the leftmost of four circles in frames
+    ``0 .. n_frames - 1`` (a pass that starts with three circles in view)."""
+    from dataclasses import replace
+
+    import appfusion.geometry_pass as G
+
+    real = G.detect_markers
+
+    def detect(frame, config=None, stream=None):
+        d = real(frame, config, stream)
+        if frame.index < n_frames and d.n == 4:
+            keep = np.arange(4) != int(np.argmin(d.pixels[:, 0]))          # hide the leftmost circle
+            d = replace(d, centers=d.centers[keep], radii=d.radii[keep], pixels=d.pixels[keep], complete=False)
+        return d
+
+    monkeypatch.setattr(G, "detect_markers", detect)
+
+
 def test_a_pass_that_starts_with_three_circles_in_view_is_anchored_on_them(monkeypatch):
     """Depth of the bare plane (no object: depth cannot fix the camera's slide along it) and only
     three circles found in the first seven frames: tracking is anchored on the circles seen so far
     (unanchored, it stood still while the camera moved 43 mm a frame), and once the fourth circle
     defines the marker frame those seven frames get their marker-frame poses."""
-    from dataclasses import replace
-
-    import appfusion.geometry_pass as G
-
     s = make_sequence(10, 320, 240, seed=2, sweep_deg=45.0)
-    real = G.detect_markers
-
-    def three_circles_first(frame, config=None, stream=None):
-        d = real(frame, config, stream)
-        if frame.index < 7 and d.n == 4:
-            keep = np.arange(4) != int(np.argmin(d.pixels[:, 0]))          # hide the leftmost circle
-            d = replace(d, centers=d.centers[keep], radii=d.radii[keep], pixels=d.pixels[keep], complete=False)
-        return d
-
-    monkeypatch.setattr(G, "detect_markers", three_circles_first)
+    _three_circles_first(monkeypatch, 7)
     gp = GeometryPass()
     states = []
     for i, f in enumerate(s.frames):
@@ -818,21 +824,8 @@ def test_frames_before_the_marker_frame_get_its_pose_only_where_their_circles_co
     poses broken by a wrong relocalisation, as on the 12-frames-a-pass synthetic Kinect sphere) gets
     none, nor does the frame without circles right after it; a frame without circles between two
     confirmed ones keeps its pose."""
-    from dataclasses import replace
-
-    import appfusion.geometry_pass as G
-
     s = make_sequence(10, 320, 240, seed=2, sweep_deg=45.0)
-    real = G.detect_markers
-
-    def three_circles_first(frame, config=None, stream=None):
-        d = real(frame, config, stream)
-        if frame.index < 7 and d.n == 4:
-            keep = np.arange(4) != int(np.argmin(d.pixels[:, 0]))
-            d = replace(d, centers=d.centers[keep], radii=d.radii[keep], pixels=d.pixels[keep], complete=False)
-        return d
-
-    monkeypatch.setattr(G, "detect_markers", three_circles_first)
+    _three_circles_first(monkeypatch, 7)
     gp = GeometryPass()
     states = []
     for i, f in enumerate(s.frames):

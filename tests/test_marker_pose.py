@@ -103,13 +103,12 @@ def test_three_circles_not_forming_the_layout_are_refused():
     assert mp.track_detection(short).pose is None                    # 0.2 m apart: no side, no diagonal
 
 
-def test_a_circle_detected_twice_keeps_the_frame_anchored():
-    """Two detections near one fused circle: the nearer is that circle's anchor, the others stay
-    anchors (dropping every anchor of the frame let the ICP slide 4 cm on the quick bench session)."""
+def _pass_with_square(pose, lost=True):
+    """A geometry pass whose tracker has fused the four circles of the 0.3 m square (marker frame =
+    world) and whose fusion predicts ``pose`` (the stale last good pose while ``lost``)."""
     from types import SimpleNamespace
 
     from appfusion.geometry_pass import GeometryPass
-    from appfusion.markers import MarkerDetection
 
     gp = GeometryPass()
     C = np.array([[0.15, -0.15, 0.0], [0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0]])
@@ -117,28 +116,22 @@ def test_a_circle_detected_twice_keeps_the_frame_anchored():
     gp.tracker.counts[:] = 1
     gp.tracker.weights[:] = 1
     gp.tracker.normal_sum[:] = [0, 0, 2.0]
-    gp.fusion = SimpleNamespace(predicted_pose=lambda: np.eye(4), lost=False)
+    gp.fusion = SimpleNamespace(predicted_pose=lambda: pose.copy(), lost=lost)
+    return gp, C
+
+
+def test_a_circle_detected_twice_keeps_the_frame_anchored():
+    """Two detections near one fused circle: the nearer is that circle's anchor, the others stay
+    anchors (dropping every anchor of the frame let the ICP slide 4 cm on the quick bench session)."""
+    from appfusion.markers import MarkerDetection
+
+    gp, C = _pass_with_square(np.eye(4), lost=False)
     seen = C[[0, 1, 3, 1]] + np.array([[0.002, 0, 0], [0.0, 0.003, 0], [0, 0, 0.001], [0.006, 0.0, 0.0]])
     det = MarkerDetection(seen, np.full(4, 0.03), np.zeros((4, 2)), np.array([0, 0, 1.0]), 0.0, False, "ir")
     src, dst, normal = gp._anchors(det)
     assert len(src) == 3
     assert np.allclose(dst, C[[0, 1, 3]]) and np.allclose(src, seen[:3])
     assert np.allclose(normal, [0, 0, 1])   # the support plane's normal, for the anchors' weights
-
-
-def _lost_pass_with_square(stale_pose):
-    from types import SimpleNamespace
-
-    from appfusion.geometry_pass import GeometryPass
-
-    gp = GeometryPass()
-    C = np.array([[0.15, -0.15, 0.0], [0.15, 0.15, 0.0], [-0.15, 0.15, 0.0], [-0.15, -0.15, 0.0]])
-    gp.tracker.sums[:] = C
-    gp.tracker.counts[:] = 1
-    gp.tracker.weights[:] = 1
-    gp.tracker.normal_sum[:] = [0, 0, 2.0]
-    gp.fusion = SimpleNamespace(predicted_pose=lambda: stale_pose.copy(), lost=True)
-    return gp, C
 
 
 def _orbit_pose(azimuth_deg, radius=0.65, height=0.45):
@@ -166,7 +159,7 @@ def test_circles_seen_while_lost_are_matched_by_their_shape(seen):
     from appfusion.markers import MarkerDetection
 
     true, stale = _orbit_pose(40.0), _orbit_pose(10.0)
-    gp, C = _lost_pass_with_square(stale)
+    gp, C = _pass_with_square(stale)
     rng = np.random.default_rng(len(seen))
     cam = transform_points(invert_pose(true), C[seen]) + rng.normal(0, 0.001, (len(seen), 3))
     det = MarkerDetection(cam, np.full(len(seen), 0.02), np.zeros((len(seen), 2)), np.array([0, 0, 1.0]), 0.0,
@@ -187,7 +180,7 @@ def test_circles_that_fit_no_square_give_no_anchors_while_lost():
     from appfusion.markers import MarkerDetection
 
     true = _orbit_pose(40.0)
-    gp, C = _lost_pass_with_square(_orbit_pose(10.0))
+    gp, C = _pass_with_square(_orbit_pose(10.0))
     pts = np.vstack([C[[0, 1]], [[0.0, 0.07, 0.0]]])
     cam = transform_points(invert_pose(true), pts)
     det = MarkerDetection(cam, np.full(3, 0.02), np.zeros((3, 2)), np.array([0, 0, 1.0]), 0.0, False, "ir")
