@@ -843,3 +843,28 @@ def test_frames_before_the_marker_frame_get_its_pose_only_where_their_circles_co
         if i not in (2, 3):
             assert st.pose_marker is not None, i
             assert np.linalg.norm(st.pose_marker[:3, 3] - s.poses[i][:3, 3]) < 0.005, i
+
+
+def test_normals_of_a_far_steep_plane_need_the_footprint_threshold():
+    """A plane 1.5 m away seen at 65 degrees, at tracking size (160 x 120): neighbouring pixels differ
+    by ~23 mm, more than 4 voxels (16 mm), so the fixed threshold calls every pixel a discontinuity;
+    with ``max_slope`` 4 (a step of 4 footprints) the normals are there and right. Near (0.5 m) the
+    step is 8 mm and both give the same normals."""
+    from appfusion.fusion import vertex_normals
+
+    K = Intrinsics(160, 120, 131.25, 131.25, 79.5, 59.5)
+    n_true = np.array([0.0, -np.sin(np.radians(65.0)), -np.cos(np.radians(65.0))])     # faces the camera
+    rays = K.rays().reshape(-1, 3)
+    for dist, fixed_kept in ((1.5, False), (0.5, True)):
+        p0 = np.array([0.0, 0.0, dist])
+        t = (p0 @ n_true) / (rays @ n_true)                    # ray-plane intersection, z = t
+        depth = np.where(t > 0, t, np.nan).reshape(120, 160).astype(np.float32)
+        fixed = vertex_normals(depth, K, max_jump=0.016, smooth_px=1.0)
+        slope = vertex_normals(depth, K, max_jump=0.016, smooth_px=1.0, max_slope=4.0)
+        band = (slice(50, 70), slice(2, -2))                   # the rows around the 65-degree centre
+        cover = np.isfinite(slope[band][..., 0]).mean()
+        assert cover > 0.95, (dist, cover)
+        ang = np.degrees(np.arccos(np.clip(slope[band].reshape(-1, 3) @ n_true, -1, 1)))
+        assert np.nanmedian(ang) < 0.5
+        fixed_cover = np.isfinite(fixed[band][..., 0]).mean()
+        assert (fixed_cover > 0.95) if fixed_kept else (fixed_cover < 0.05), (dist, fixed_cover)
