@@ -1137,7 +1137,12 @@ class ScanRunner:
 
         rgb_arrays = self._reuse("rgb", "rho_d / rho_s")
         if rgb_arrays is not None:
+            # the HBSABs and lobes the colour pass refitted to its clusters (a split, a merge), if it did
+            hb = _unstack_images(rgb_arrays.pop("hbsab_images", None))
+            fits = _unstack_images(rgb_arrays.pop("hbsab_fit_images", None))
             self._rgb_result = rgb_arrays
+            if hb:
+                self._publish(force=True, hbsabs=hb, hbsab_fits=fits)
             if "normals" in rgb_arrays and self.points is not None:     # refined (_refine_normals)
                 self.points = (self.points[0], np.asarray(rgb_arrays["normals"], np.float32))
             restored = self._restore_history("rgb", "rho_s")
@@ -1219,7 +1224,13 @@ class ScanRunner:
                 f"cluster {c} {m} ({a:.3g} / {b:.3g}, z {z:.1f}" + (f"; Ward's rho_s would be {np.mean(w):.4f})"
                                                                    if m == "diffuse" else ")")
                 for c, (m, (a, b), w, z) in enumerate(zip(r.model, r.heldout_rss, ward, zs))))
-        self._save_npz("rgb", **self._rgb_result)
+        # what the report and the GUI show of the clusters: the HBSABs and lobes refitted to the colour
+        # pass's clusters (_refit_ir) when it split or merged any; a rerun on the checkpoints shows them
+        imgs = {}
+        if splits or merges:
+            imgs = {"hbsab_images": _stack_images(self._snap.hbsabs),
+                    "hbsab_fit_images": _stack_images(self._snap.hbsab_fits)}
+        self._save_npz("rgb", **self._rgb_result, **imgs)
         self._mark_done("rgb", {"frames": used, "history": {"rho_s": self._snap.history.get("rho_s", [])}})
         sig = self._rgb_result.get("rho_s_sigma")
         self._publish(force=True, rho_d=self._rgb_result["rho_d"], rho_s=self._rgb_result["rho_s"], rho_s_sigma=sig)

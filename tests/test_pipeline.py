@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from appfusion.pipeline import CHECKPOINT_VERSION, ScanConfig, ScanRunner
 from replay.session import SessionReader
@@ -339,3 +340,28 @@ def test_the_fine_refusion_truncates_at_two_voxels_where_the_object_curves_tight
     assert any("truncation 2 voxels" in m for m in r.messages), r.messages
     r, _ = _run(kinect_sphere, tmp_path / "given", stop_at="ir", refuse_trunc_voxels=3, refuse_fine_trunc_voxels=2)
     assert r.geometry.gp.fusion.config.trunc_voxels == 3
+
+
+@pytest.mark.slow
+def test_a_rerun_after_a_colour_split_shows_the_split_clusters_hbsabs(tmp_path):
+    """When the colour pass splits a cluster, the HBSABs and lobes shown (report, GUI) are those
+    refitted to its clusters; a rerun on the checkpoints shows the same ones. Before session 28 the
+    rerun showed the IR checkpoint's (one cluster where the run had shown two)."""
+    from replay.synth import render_session
+
+    ses = render_session("two-material", tmp_path / "ses", frames=40, size=(320, 240), seed=0, detail="test",
+                         quality="test", references=False, show_progress=False)
+    out = tmp_path / "scan"
+    r1 = ScanRunner(SessionReader(ses), out, ScanConfig(**SMALL), log=lambda *a: None)
+    r1.run()
+    assert any("new cluster" in m for m in r1.messages), r1.messages     # the colour pass split one
+    s1 = r1.snapshot()
+    r2 = ScanRunner(SessionReader(ses), out, ScanConfig(**SMALL), log=lambda *a: None)
+    r2.run()
+    assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
+    s2 = r2.snapshot()
+    assert len(s1.hbsabs) == len(s2.hbsabs) == 2
+    for a, b in zip(s1.hbsabs + s1.hbsab_fits, s2.hbsabs + s2.hbsab_fits):
+        assert (a is None) == (b is None)
+        if a is not None:
+            np.testing.assert_allclose(a, b, rtol=1e-6)
