@@ -37,8 +37,7 @@ import numpy as np  # noqa: E402
 
 from . import octahedral as octa  # noqa: E402
 from .errors import AppFusionError, EstimationError  # noqa: E402
-from .frame import REC709_LUMA  # noqa: E402
-from .frame import Intrinsics, linear_to_srgb  # noqa: E402
+from .frame import REC709_LUMA, Intrinsics, linear_to_srgb  # noqa: E402
 
 #: version of the .npz layout written by :meth:`EnvMap.save_npz`
 NPZ_VERSION = 1

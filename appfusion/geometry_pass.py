@@ -387,6 +387,12 @@ class GeometryPass:
             return None
         return det.centers[keep], P[j[keep]]
 
+    @property
+    def _circle_fit_tol_m(self) -> float:
+        """RMS distance, metres, within which detected circle centres fit the fused ones: half a
+        circle's radius, at least 5 mm (:meth:`_match_lost`, :meth:`_backfill_marker_poses`)."""
+        return max(0.5 * self.marker_config.radius_m, 0.005)
+
     def _backfill_marker_poses(self, tol_m: float | None = None) -> None:
         """Give the frames tracked before the marker frame existed, anchored on the circles seen so
         far (:meth:`_provisional_anchors`), their marker-frame pose once it does, so that re-fusion and
@@ -405,7 +411,7 @@ class GeometryPass:
         if self._prov_since is None:
             return
         if tol_m is None:
-            tol_m = max(0.5 * self.marker_config.radius_m, 0.005)
+            tol_m = self._circle_fit_tol_m
         W2M = invert_pose(self.tracker.marker_to_world())
         C = self.tracker.centers
         cand = [st for st in self.states[self._prov_since:]
@@ -476,7 +482,7 @@ class GeometryPass:
         if self.marker_config.key_radius_m and det.complete:
             return np.arange(len(C))
         if tol_m is None:
-            tol_m = max(0.5 * self.marker_config.radius_m, 0.005)
+            tol_m = self._circle_fit_tol_m
         last = self.fusion.predicted_pose()
         best, best_ang = None, np.inf
         for perm in permutations(range(len(C)), det.n):

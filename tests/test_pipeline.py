@@ -352,12 +352,10 @@ def test_a_rerun_after_a_colour_split_shows_the_split_clusters_hbsabs(tmp_path):
     ses = render_session("two-material", tmp_path / "ses", frames=40, size=(320, 240), seed=0, detail="test",
                          quality="test", references=False, show_progress=False)
     out = tmp_path / "scan"
-    r1 = ScanRunner(SessionReader(ses), out, ScanConfig(**SMALL), log=lambda *a: None)
-    r1.run()
+    r1, _ = _run(ses, out)
     assert any("new cluster" in m for m in r1.messages), r1.messages     # the colour pass split one
     s1 = r1.snapshot()
-    r2 = ScanRunner(SessionReader(ses), out, ScanConfig(**SMALL), log=lambda *a: None)
-    r2.run()
+    r2, _ = _run(ses, out)
     assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
     s2 = r2.snapshot()
     assert len(s1.hbsabs) == len(s2.hbsabs) == 2

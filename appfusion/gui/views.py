@@ -201,9 +201,6 @@ class HBSABView(pg.GraphicsLayoutWidget):
 _SHORT = {"ir-calibration": "ir-cal", "environment": "env", "geometry": "geom"}
 
 
-LUMINANCE = REC709_LUMA
-
-
 def _fmt(v: float, sig: float | None = None) -> str:
     """``v`` to three decimals (or three significant digits below 0.01), with ``± sig`` to two."""
     if not np.isfinite(v):
@@ -254,7 +251,7 @@ def luminance_sigma(rho_s_sigma) -> np.ndarray:
     """Standard error (C,) of each cluster's rho_s luminance (Rec. 709 weights) from the channels'
     standard errors (C, 3), taking the channels' errors as independent; NaN where a channel's is."""
     s = np.asarray(rho_s_sigma, np.float64).reshape(-1, 3)
-    return np.sqrt(((s * LUMINANCE) ** 2).sum(axis=1))
+    return np.sqrt(((s * REC709_LUMA) ** 2).sum(axis=1))
 
 
 class PlotsView(pg.GraphicsLayoutWidget):
@@ -296,7 +293,7 @@ class PlotsView(pg.GraphicsLayoutWidget):
             return np.zeros(0), np.zeros((0, 0))
         frames = np.array([float(h[0]) for h in hist])
         vals = [np.atleast_1d(np.asarray(h[1], np.float64)) for h in hist]
-        vals = [v @ LUMINANCE if v.ndim == 2 and v.shape[-1] == 3 else v.reshape(-1)
+        vals = [v @ REC709_LUMA if v.ndim == 2 and v.shape[-1] == 3 else v.reshape(-1)
                 for v in vals]
         c = max(len(v) for v in vals)
         out = np.full((len(vals), c), np.nan)
@@ -353,7 +350,7 @@ class PlotsView(pg.GraphicsLayoutWidget):
             # hidden, not emptied: an empty ErrorBarItem still puts x = 0 into the plot's auto range
             self.rhos_err.setVisible(False)
             return
-        y = np.asarray(snap.rho_s, np.float64).reshape(-1, 3) @ LUMINANCE
+        y = np.asarray(snap.rho_s, np.float64).reshape(-1, 3) @ REC709_LUMA
         s = luminance_sigma(sig)[:len(y)]
         y = y[:len(s)]
         ok = np.isfinite(y) & np.isfinite(s)
