@@ -700,9 +700,14 @@ class TSDFFusion:
         return o3d.t.geometry.Image(np.ascontiguousarray(d, dtype=np.float32))
 
     def _frame_blocks(self, depth_int: np.ndarray, pose: np.ndarray, img=None) -> o3d.core.Tensor:
-        """Voxel-block coordinates (B, 3) a depth image at integration size touches (truncation band)."""
+        """Voxel-block coordinates (B, 3) a depth image at integration size touches (truncation band);
+        none (0, 3) for an image without a valid pixel, where Open3D raises "No block is touched"
+        (the surface volume's image of depth striped with NaN rows: every pixel lacks a normal, so
+        :func:`drop_grazing` drops them all)."""
         cfg = self.config
         img = self._o3d_depth(depth_int) if img is None else img
+        if not (img.as_tensor().numpy() > 0).any():
+            return o3d.core.Tensor(np.zeros((0, 3), np.int32))
         return self.vbg.compute_unique_block_coordinates(img, self._Kt_int, o3d.core.Tensor(invert_pose(pose)),
                                                          1.0, cfg.depth_max, cfg.trunc_voxels)
 

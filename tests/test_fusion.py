@@ -868,3 +868,18 @@ def test_normals_of_a_far_steep_plane_need_the_footprint_threshold():
         assert np.nanmedian(ang) < 0.5
         fixed_cover = np.isfinite(fixed[band][..., 0]).mean()
         assert (fixed_cover > 0.95) if fixed_kept else (fixed_cover < 0.05), (dist, fixed_cover)
+
+
+def test_depth_striped_with_invalid_rows_is_fused_without_an_open3d_error():
+    """Every third depth row invalid (a sensor's dropped lines): no pixel has a normal, so the
+    surface volume's image (:func:`drop_grazing`) is empty. Open3D raised "No block is touched"
+    from the first frame (a raw RuntimeError out of ``appfusion scan``); now the tracking volume
+    takes the frame and the surface volume nothing."""
+    s = make_sequence(2, 320, 240, seed=1)
+    d = s.frames[0].depth.copy()
+    d[::3] = np.nan
+    fu = TSDFFusion(s.frames[0].depth_intrinsics, FusionConfig(voxel_size=0.004))
+    res = fu.process(d)
+    assert res.state == "first" and res.integrated
+    assert fu.n_blocks > 0                                    # the tracking volume took the frame
+    assert len(fu.extract_mesh().triangles) == 0              # the surface volume had nothing to take
