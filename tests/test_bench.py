@@ -296,7 +296,7 @@ def test_cli_bench_stability_json(tmp_path):
     env_err = [p["error"] for p in rep["sweeps"]["envmap_n"]["points"]]
     assert all(b < a for a, b in zip(env_err, env_err[1:]))
     assert png.read_bytes()[:4] == b"\x89PNG" and rep["plot"] == str(png)
-    assert math.isfinite(rep["seconds"]) and time.perf_counter() - t0 < 60
+    assert math.isfinite(rep["seconds"]) and time.perf_counter() - t0 < 300   # a hang guard, not a timing
 
 
 # -- the end-to-end scan stage ---------------------------------------------------------------------
@@ -434,7 +434,7 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     # session first is the synthetic scanner's cost and varies with the machine (the whole call was
     # 55 s alone there, 61 s beside the rest of the suite), so it is printed, not bounded
     print(f"scan stage {time.perf_counter() - t0:.1f} s, of which the scan {ctx.extra['scan']['wall_s']:.1f} s")
-    assert ctx.extra["scan"]["wall_s"] < 60
+    assert ctx.extra["scan"]["wall_s"] < 150                  # a regression guard (5x), not a timing
     assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
                         "scan_ir_pattern_heldout_cv", *S.SCAN_METRICS.values(), *S.MATTE_METRICS.values()}
     # the matte scene (no lobe) is scanned too: its rho_s over its area, rho_d and relit error

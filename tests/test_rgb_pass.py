@@ -261,24 +261,21 @@ def test_rho_s_standard_error_predicts_the_spread_over_noise_realisations(sphere
 def test_diffuse_clusters_skip_their_tables(sphere_run):
     """A cluster flagged diffuse (the IR pass saw no lobe) gets no double-product table and rho_s 0;
     with every cluster diffuse only D is built."""
-    import time
-
     from appfusion.double_product import DoubleProductTables
 
     sc, poses, frames, rp0, _ = sphere_run
-    t0 = time.perf_counter()
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, table_kwargs=TABLES,
                  specular=[False, True])
-    t_one = time.perf_counter() - t0
-    assert rp.tables.alphas == [float(sc.alphas[1])]
+    assert rp.tables.alphas == [float(sc.alphas[1])] and list(rp.tables.tables) == [float(sc.alphas[1])]
     for (rgb, depth, _), T in list(zip(frames, poses))[:8]:
         rp.add_frame(rgb, depth, sc.rgb_intrinsics, sc.depth_intrinsics, T, sc.depth_to_rgb)
     res = rp.result()
     assert res.model[0] == "diffuse" and (res.rho_s[0] == 0).all() and np.isfinite(res.rho_d).all()
     none = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, table_kwargs=TABLES,
                    specular=[False, False])
+    # what is built, not how long it took (a timing comparison of two ~0.12 s builds failed CI)
     assert none.tables.alphas == [] and isinstance(none.tables, DoubleProductTables)
-    assert none.table_seconds < t_one
+    assert np.array_equal(none.tables.D(sc.normals), rp.tables.D(sc.normals))     # D is built all the same
     with pytest.raises(AppFusionError, match="specular"):
         RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, specular=[True])
 
