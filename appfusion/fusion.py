@@ -47,7 +47,7 @@ from .frame import Intrinsics, invert_pose, transform_points
 
 __all__ = ["FusionConfig", "TrackResult", "TSDFFusion", "downsample_depth", "voxel_size_for_box",
            "rotation_angle_deg", "vertex_normals", "drop_grazing", "kabsch", "orthonormalize",
-           "set_openmp_threads", "blas_threads"]
+           "set_openmp_threads", "blas_threads", "depth_range_hint"]
 
 o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
 
@@ -99,6 +99,27 @@ def blas_threads(n: int = 1):
     except Exception:  # pragma: no cover - threadpoolctl missing or failing
         import contextlib
         return contextlib.nullcontext()
+
+def depth_range_hint(depth: np.ndarray, cfg: "FusionConfig") -> str:
+    """Why a depth image has no depth in the working range, for an error: ``""`` unless most of its
+    valid depth (finite, > 0; metres) lies nearer than ``cfg.depth_min`` or farther than
+    ``cfg.depth_max``, which is what depth in the wrong units looks like (millimetres read as metres:
+    1000 x too far; metres stored in a millimetre PNG: 1-3 units, 1000 x too near)."""
+    d = np.asarray(depth, np.float32)
+    with np.errstate(invalid="ignore"):
+        d = d[np.isfinite(d) & (d > 0)]
+    if d.size == 0:
+        return ""
+    med = float(np.median(d))
+    if np.mean(d <= cfg.depth_min) > 0.5:
+        where = f"nearer than depth_min {cfg.depth_min:g} m"
+    elif np.mean(d >= cfg.depth_max) > 0.5:
+        where = f"farther than depth_max {cfg.depth_max:g} m"
+    else:
+        return ""
+    return (f": most of its depth lies {where} (median {med:.3g} m); are the recording's depth units "
+            f"right?")
+
 
 STATE_OK = "ok"
 STATE_LOST = "lost"
@@ -360,11 +381,13 @@ def downsample_depth(depth: np.ndarray, factor: int, max_jump: float = 0.03, min
 
     Returns
     -------
-    (H // factor, W // factor) float32 array.
+    (H // factor, W // factor) float32 array, never a view of ``depth``.
     """
     f = int(factor)
     if f == 1:
-        return np.asarray(depth, np.float32)
+        # a copy: callers mask the result in place, and the input is the caller's frame (TSDFFusion
+        # NaN-ed a 320-wide frame's out-of-range depth in the Frame itself until session 29)
+        return np.array(depth, np.float32, copy=True)
     H, W = depth.shape
     h, w = H // f, W // f
     d = np.asarray(depth[: h * f, : w * f], np.float32)
@@ -1020,7 +1043,7 @@ class TSDFFusion:
             d_roi = self._mask_roi(d_int, self.K_int, self.pose)
             if np.isfinite(d_roi).sum() < 0.01 * d_roi.size:
                 res = TrackResult(idx, STATE_LOST, self.pose.copy(), 0.0, 0.0, np.inf, False,
-                                  "no valid depth to start the model from")
+                                  "no valid depth to start the model from" + depth_range_hint(depth, cfg))
                 self.results.append(res)
                 return res
             ms["prep"] = (time.perf_counter() - t0) * 1e3

@@ -13,8 +13,8 @@ import pytest
 
 from appfusion.errors import AppFusionError, EstimationError
 from appfusion.frame import Intrinsics, invert_pose, make_pose, transform_points
-from appfusion.fusion import (FusionConfig, TSDFFusion, downsample_depth, drop_grazing, kabsch, orthonormalize,
-                              rotation_angle_deg, voxel_size_for_box)
+from appfusion.fusion import (FusionConfig, TSDFFusion, depth_range_hint, downsample_depth, drop_grazing, kabsch,
+                              orthonormalize, rotation_angle_deg, voxel_size_for_box)
 from appfusion.geometry_pass import GeometryConfig, GeometryPass
 from appfusion.geometry_synth import make_sequence
 
@@ -883,3 +883,24 @@ def test_depth_striped_with_invalid_rows_is_fused_without_an_open3d_error():
     assert res.state == "first" and res.integrated
     assert fu.n_blocks > 0                                    # the tracking volume took the frame
     assert len(fu.extract_mesh().triangles) == 0              # the surface volume had nothing to take
+
+
+@pytest.mark.parametrize("scale, word", [(1e-3, "nearer than depth_min"), (1e3, "farther than depth_max")])
+def test_depth_in_the_wrong_units_is_named_in_the_reason(scale, word):
+    """Depth 1000x too near (metres stored where millimetres are read) or too far (millimetres read as
+    metres): the first frame's reason says where the depth lies against the working range."""
+    K = K320
+    d = _plane_depth(K, 0.7, 20.0) * scale
+    d0 = d.copy()
+    fu = TSDFFusion(K, FusionConfig())
+    assert fu.f_int == 1                               # integration at the frame's own size
+    r = fu.process(d)
+    assert r.state == "lost" and fu.n_integrated == 0
+    # the caller's frame is left as it was (the range mask NaN-ed it in place at f_int 1)
+    assert np.array_equal(d, d0, equal_nan=True) and not np.shares_memory(downsample_depth(d, 1), d)
+    assert r.reason.startswith("no valid depth to start the model from") and word in r.reason
+    assert "depth units" in r.reason and f"{np.median(d[np.isfinite(d)]):.3g} m" in r.reason
+    # depth in range but with too few valid pixels (a covered lens) names no units
+    sparse = np.full(K.shape, np.nan, np.float32)
+    sparse[:2, :2] = 0.7
+    assert depth_range_hint(sparse, FusionConfig()) == "" and depth_range_hint(np.zeros(K.shape), FusionConfig()) == ""
