@@ -5,7 +5,8 @@ Each subcommand lives in its own module under :mod:`appfusion.commands` and defi
 arguments and returning an exit status. Modules are imported lazily by name, so adding a command
 means adding one file and one line to :data:`COMMANDS`.
 
-Errors a user can cause (:class:`~appfusion.errors.AppFusionError`) are printed as one line,
+Errors a user can cause (:class:`~appfusion.errors.AppFusionError`, and an ``OSError`` about a named
+file: no permission, disk full, a file where a folder goes) are printed as one line,
 ``appfusion: error: ...``, with exit status 2 and no traceback.
 """
 
@@ -50,6 +51,13 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except AppFusionError as e:
         print(f"appfusion: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if e.filename is None:
+            raise                          # not about a file the user named: a traceback helps
+        # a file system refusal (a file where a folder goes, no permission, disk full): one line
+        where = e.filename if e.filename2 is None else f"{e.filename} -> {e.filename2}"
+        print(f"appfusion: error: {where}: {e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("appfusion: interrupted", file=sys.stderr)

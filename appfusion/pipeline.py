@@ -482,6 +482,9 @@ class ScanRunner:
                  log: Callable[[str], None] | None = None, progress: bool = False):
         self.source = source
         self.out_dir = Path(out_dir)
+        if self.out_dir.exists() and not self.out_dir.is_dir():
+            raise AppFusionError(f"{self.out_dir}: the scan's output folder is an existing file; "
+                                 f"give a folder (new or one of an earlier scan)")
         self.config = config or ScanConfig()
         if not 0.25 <= float(self.config.refuse_voxel_scale) <= 1.0:
             raise AppFusionError(f"scan config: refuse_voxel_scale must be in [0.25, 1] (the re-fusion's voxel "

@@ -71,6 +71,23 @@ def test_scan_of_a_recording_without_markers_keeps_the_fused_surface(redwood_dir
     assert 0.8 < np.median(V[:, 2]) < 3.0
 
 
+def test_scan_into_a_file_or_an_unwritable_place_is_one_line(redwood_dir, tmp_path, capsys, monkeypatch):
+    """``--out`` naming an existing file is refused before any frame is read; a file system refusal
+    further on (here: a folder that cannot be made) is one line naming the path, exit status 2."""
+    from appfusion.cli import main
+
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    assert main(["scan", str(redwood_dir), "--out", str(afile)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{afile}: the scan's output folder is an existing file" in err
+    assert afile.read_text() == "mine"
+    # a folder below a file cannot be made: the OSError is reported by the path it names
+    assert main(["scan", str(redwood_dir), "--out", str(afile / "scan")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("appfusion: error: ") and str(afile / "scan") in err and "Traceback" not in err
+
+
 def test_redwood_poses_are_camera_to_world(redwood_dir):
     """Depth of frames 0 and 4 back-projected with the trajectory poses lands on the same surface."""
     fs = [RedwoodReader(redwood_dir)[i] for i in (0, 4)]
