@@ -134,5 +134,7 @@ class ScanResult:
             env = z["envmap"] if "envmap" in z.files and z["envmap"].ndim == 4 else None
             return cls(**kw, envmap=env, model=[str(m) for m in z["model"]],
                        info=json.loads(str(z["info_json"])))
-        except (OSError, ValueError, KeyError) as e:
-            raise SessionFormatError(path, f"not a readable scan result ({e})") from None
+        except Exception as e:  # noqa: BLE001 - zip/npy damage surfaces as many types (BadZipFile, EOFError, ...)
+            raise SessionFormatError(path, f"not a readable scan result ({type(e).__name__}: {e}); a copy cut "
+                                           f"short or another file: rerun `appfusion scan` into its folder "
+                                           f"(its checkpoints are reused)") from None

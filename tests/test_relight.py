@@ -438,3 +438,19 @@ def test_render_command_writes_png_and_exr_and_refuses_a_bad_crease_angle(tmp_pa
     assert main(["render", str(path), "--crease-deg", "-5", "--out", str(tmp_path / "bad")]) == 2
     assert "--crease-deg must be in [0, 180]" in capsys.readouterr().err
     assert not (tmp_path / "bad.png").exists()
+    # other bad arguments and a damaged result: one line each, nothing written
+    nan_pose = tmp_path / "nan.json"
+    nan_pose.write_text('{"pose": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, NaN], [0, 0, 0, 1]]}')
+    (tmp_path / "list.json").write_text("[1, 2]")
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(path.read_bytes()[:1000])
+    for args, msg in [(["--spp", "0"], "--spp must be at least 1"),
+                      (["--view", "orbit:30:20:-0.5"], "RADIUS_M a positive distance"),
+                      (["--view", str(nan_pose)], "non-finite"),
+                      (["--view", str(tmp_path / "list.json")], "expected JSON with a 4x4 'pose'")]:
+        assert main(["render", str(path), *args, "--out", str(tmp_path / "bad")]) == 2, args
+        err = capsys.readouterr().err
+        assert msg in err and err.count("\n") == 1, (args, err)
+    assert main(["render", str(cut), "--out", str(tmp_path / "bad")]) == 2
+    assert "cut.npz: not a readable scan result (BadZipFile" in capsys.readouterr().err
+    assert not (tmp_path / "bad.png").exists()

@@ -42,6 +42,9 @@ def parse_view(view: str, result, size: tuple[int, int]):
             az, el, r = (float(x) for x in view.split(":")[1:4])
         except ValueError:
             raise AppFusionError(f"--view {view!r}: expected orbit:AZIMUTH_DEG:ELEVATION_DEG:RADIUS_M") from None
+        if not (np.isfinite([az, el]).all() and np.isfinite(r) and r > 0):
+            raise AppFusionError(f"--view {view!r}: angles must be finite and RADIUS_M a positive distance "
+                                 f"(metres from the object's centre)")
         P = result.positions
         target = np.array([P[:, 0].mean(), P[:, 1].mean(), 0.5 * (P[:, 2].min() + P[:, 2].max())])
         a, e = np.radians(az), np.radians(el)
@@ -60,8 +63,10 @@ def parse_view(view: str, result, size: tuple[int, int]):
     try:
         d = json.loads(path.read_text())
         pose = np.asarray(d["pose"], float).reshape(4, 4)
-    except (ValueError, KeyError) as e:
+    except (ValueError, KeyError, TypeError) as e:
         raise AppFusionError(f"{path}: expected JSON with a 4x4 'pose' ({e})") from None
+    if not np.isfinite(pose).all():
+        raise AppFusionError(f"{path}: the 'pose' holds non-finite numbers")
     if "intrinsics" in d:
         K = Intrinsics.from_json(d["intrinsics"])
     return K, pose
@@ -77,6 +82,8 @@ def run(args) -> int:
     from appfusion.relight import render_view
     from appfusion.result import ScanResult
 
+    if args.spp < 1:
+        raise AppFusionError(f"render: --spp must be at least 1 sample per pixel, got {args.spp}")
     if not (np.isfinite(args.crease_deg) and 0 <= args.crease_deg <= 180):
         raise AppFusionError(f"render: --crease-deg must be in [0, 180] degrees, got {args.crease_deg}")
     res = ScanResult.load(args.result)
