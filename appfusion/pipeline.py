@@ -493,6 +493,18 @@ class ScanRunner:
             raise AppFusionError(f"scan config: refuse_rounds must be at least 1 (refuse_geometry=False turns the "
                                  f"re-registration off), got {self.config.refuse_rounds}")
         c = self.config
+        if not (isinstance(c.n_points, (int, np.integer)) and int(c.n_points) >= 1):
+            raise AppFusionError(f"scan config: n_points (points sampled on the surface) must be a positive "
+                                 f"integer, got {c.n_points!r}")
+        if c.k_clusters is not None and not (isinstance(c.k_clusters, (int, np.integer)) and int(c.k_clusters) >= 1):
+            raise AppFusionError(f"scan config: k_clusters must be None (automatic) or a positive integer, "
+                                 f"got {c.k_clusters!r}")
+        if not (isinstance(c.frame_stride, (int, np.integer)) and int(c.frame_stride) >= 1):
+            raise AppFusionError(f"scan config: frame_stride must be a positive integer (1: every frame), "
+                                 f"got {c.frame_stride!r}")
+        if c.ball_radius_m is not None and not (np.isfinite(float(c.ball_radius_m)) and float(c.ball_radius_m) > 0):
+            raise AppFusionError(f"scan config: ball_radius_m must be None (fitted) or a positive radius in "
+                                 f"metres, got {c.ball_radius_m!r}")
         if c.refuse_fine_scale is not None and not 0.25 <= float(c.refuse_fine_scale) <= 1.0:
             raise AppFusionError(f"scan config: refuse_fine_scale must be None or in [0.25, 1], got {c.refuse_fine_scale}")
         if not (isinstance(c.near_field_final_samples, (int, np.integer)) and 1 <= int(c.near_field_final_samples) <= 256):

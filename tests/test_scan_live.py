@@ -331,6 +331,31 @@ def test_cli_argument_errors(capsys):
     assert "unknown device 'kinect9'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args, msg", [
+    (["--points", "0"], "n_points (points sampled on the surface) must be a positive integer, got 0"),
+    (["--clusters", "0"], "k_clusters must be None (automatic) or a positive integer"),
+    (["--stride", "0"], "frame_stride must be a positive integer"),
+    (["--ball-radius", "-0.03"], "ball_radius_m must be None (fitted) or a positive radius"),
+    (["--ball-radius", "nan"], "ball_radius_m must be None (fitted) or a positive radius"),
+    (["--marker-side", "0.3"], "--marker-side: for live scans (--device) only"),
+    (["--pass-frames", "geometry=10", "--dark-frames", "3"], "--pass-frames, --dark-frames: for live scans"),
+    (["--device", "openni2:Dummy", "--marker-side", "-1"], "--marker-side must be a positive length"),
+    (["--device", "openni2:Dummy", "--key-radius", "nan"], "--key-radius must be a non-negative length"),
+    (["--device", "openni2:Dummy", "--dark-frames", "-2"], "--dark-frames must be 0 or more frames"),
+])
+def test_cli_scan_arguments_out_of_range_are_refused_before_any_frame(args, msg, redwood_dir, tmp_path, capsys):
+    """Each out-of-range option is one line naming it, before the recording (or the device) is opened
+    and before anything is written (``--points 0`` silently meant the default before)."""
+    from appfusion.cli import main
+
+    out = tmp_path / "out"
+    target = [] if "--device" in args else [str(redwood_dir)]
+    assert main(["scan", *target, "--out", str(out), "--no-progress", *args]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and err.count("\n") == 1, err
+    assert not out.exists()
+
+
 class SyntheticKinectStub(Source):
     is_recording = False
     name = "stub"

@@ -12,6 +12,7 @@ recording early and what was recorded is still processed. See docs/hardware.md, 
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import threading
@@ -110,10 +111,23 @@ def run(args) -> int:
     on_plane = {"auto": "auto", "yes": True, "no": False, None: None}[args.ball_on_plane]
     cfg = ScanConfig(frame_stride=args.stride, ball_radius_m=args.ball_radius, k_clusters=args.clusters,
                      mirror_reflectance=args.mirror_reflectance, ball_on_plane=on_plane)
-    if args.points:
-        cfg.n_points = args.points
+    if args.points is not None:
+        cfg.n_points = args.points                          # checked by ScanRunner (>= 1)
     if args.normal_refine is not None:
         cfg.normal_refine_rounds = args.normal_refine       # checked by ScanRunner (>= 0)
+    live_only = [f for f, v in (("--pass-frames", args.pass_frames), ("--marker-radius", args.marker_radius),
+                                ("--key-radius", args.key_radius), ("--marker-side", args.marker_side),
+                                ("--dark-frames", None if args.dark_frames == DEFAULT_DARK_FRAMES else 1))
+                 if v is not None]
+    if live_only and not args.device:
+        raise AppFusionError(f"{', '.join(live_only)}: for live scans (--device) only; a recording keeps the "
+                             f"pass boundaries and markers it was recorded with")
+    if args.dark_frames < 0:
+        raise AppFusionError(f"--dark-frames must be 0 or more frames, got {args.dark_frames}")
+    for flag, v, low in (("--marker-radius", args.marker_radius, False), ("--key-radius", args.key_radius, True),
+                         ("--marker-side", args.marker_side, False)):
+        if v is not None and not (math.isfinite(v) and (v >= 0 if low else v > 0)):
+            raise AppFusionError(f"{flag} must be a {'non-negative' if low else 'positive'} length in metres, got {v}")
     if args.device:
         if args.out is None:
             raise AppFusionError("scan --device needs --out DIR (the live recording goes to DIR/live-session)")
