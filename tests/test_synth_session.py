@@ -139,6 +139,13 @@ def test_cli_list_and_errors(tmp_path, capsys):
     assert "unknown synthetic scene 'teapot'" in capsys.readouterr().err
     assert main(["synth", "sphere", str(tmp_path / "y"), "--size", "640by480"]) == 2
     assert "--size" in capsys.readouterr().err
+    for args, msg in [(["--seed", "-1"], "the seed must be an integer in [0, 2^32)"),
+                      (["--frames", "0"], "frames per pass must be >= 1"),
+                      (["--workers", "0"], "--workers must be at least 1")]:
+        assert main(["synth", "sphere", str(tmp_path / "z"), "--quiet", *args]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err, err
+    assert not (tmp_path / "z").exists()
 
 
 def test_info_command_and_contact_sheet(kinect_session, tmp_path, capsys):

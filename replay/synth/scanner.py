@@ -323,6 +323,8 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     if not 1 <= frames <= 100000:
         raise AppFusionError(f"frames per pass must be >= 1, got {frames}")
     w, h = _parse_size(size)
+    if not (isinstance(seed, (int, np.integer)) and 0 <= int(seed) < 2 ** 32):
+        raise AppFusionError(f"synth: the seed must be an integer in [0, 2^32), got {seed!r}")
     if workers is not None and int(workers) < 1:
         raise AppFusionError(f"synth: --workers must be at least 1, got {workers}")
     if quality is None:
