@@ -372,6 +372,9 @@ def calibrate_ir(frames: Iterable[Frame], emitter_position=None, model: str = "s
         raise CalibrationError(f"IR calibration: unknown emitter model {model!r} (use shifted_gamma or flat)")
     if not sheet_albedo > 0:
         raise CalibrationError(f"IR calibration: sheet albedo must be positive, got {sheet_albedo}")
+    if not (np.isfinite(saturation) and saturation > 0):
+        raise CalibrationError(f"IR calibration: saturation must be a positive raw IR level (where the sensor "
+                               f"clips, e.g. 1023 for 10 bits), got {saturation}")
     e = np.asarray((0.075, 0.0, 0.0) if emitter_position is None else emitter_position, dtype=float).reshape(3)
     off, obs, skipped = [], [], []
     pattern_phase = (0.0, 0.0)

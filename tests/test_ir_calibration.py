@@ -173,6 +173,11 @@ def test_calibration_errors(scanner):
         calibrate_ir([], E)
     with pytest.raises(CalibrationError, match="unknown emitter model"):
         calibrate_ir(fr, E, model="laser")
+    for bad in (0.0, float("nan")):
+        with pytest.raises(CalibrationError, match="sheet albedo must be positive"):
+            calibrate_ir(fr, E, sheet_albedo=bad)
+        with pytest.raises(CalibrationError, match="saturation must be a positive raw IR level"):
+            calibrate_ir(fr, E, saturation=bad - 1)
 
 
 def test_flat_emitter_model():
