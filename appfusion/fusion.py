@@ -103,8 +103,9 @@ def blas_threads(n: int = 1):
 def depth_range_hint(depth: np.ndarray, cfg: "FusionConfig") -> str:
     """Why a depth image has no depth in the working range, for an error: ``""`` unless most of its
     valid depth (finite, > 0; metres) lies nearer than ``cfg.depth_min`` or farther than
-    ``cfg.depth_max``, which is what depth in the wrong units looks like (millimetres read as metres:
-    1000 x too far; metres stored in a millimetre PNG: 1-3 units, 1000 x too near)."""
+    ``cfg.depth_max``. Beyond 10 x nearer or 5 x farther than the range it asks about the units (depth
+    in the wrong units: millimetres read as metres, 1000 x too far; metres stored in a millimetre PNG,
+    1-3 units, 1000 x too near); otherwise it states the working range."""
     d = np.asarray(depth, np.float32)
     with np.errstate(invalid="ignore"):
         d = d[np.isfinite(d) & (d > 0)]
@@ -117,8 +118,10 @@ def depth_range_hint(depth: np.ndarray, cfg: "FusionConfig") -> str:
         where = f"farther than depth_max {cfg.depth_max:g} m"
     else:
         return ""
-    return (f": most of its depth lies {where} (median {med:.3g} m); are the recording's depth units "
-            f"right?")
+    if cfg.depth_min / 10 <= med <= cfg.depth_max * 5:       # a plausible distance: the camera is too near or far
+        return f": most of its depth lies {where} (median {med:.3g} m); the object is scanned from " \
+               f"{cfg.depth_min:g} to {cfg.depth_max:g} m"
+    return f": most of its depth lies {where} (median {med:.3g} m); are the recording's depth units right?"
 
 
 STATE_OK = "ok"

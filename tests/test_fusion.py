@@ -900,6 +900,10 @@ def test_depth_in_the_wrong_units_is_named_in_the_reason(scale, word):
     assert np.array_equal(d, d0, equal_nan=True) and not np.shares_memory(downsample_depth(d, 1), d)
     assert r.reason.startswith("no valid depth to start the model from") and word in r.reason
     assert "depth units" in r.reason and f"{np.median(d[np.isfinite(d)]):.3g} m" in r.reason
+    # a camera merely too far (2.4 m, a room) is told the working range, not asked about units
+    far = FusionConfig()
+    hint = depth_range_hint(_plane_depth(K, 0.7, 20.0) * 3.4, far)
+    assert "farther than depth_max 1.6 m" in hint and "scanned from 0.15 to 1.6 m" in hint and "units" not in hint
     # depth in range but with too few valid pixels (a covered lens) names no units
     sparse = np.full(K.shape, np.nan, np.float32)
     sparse[:2, :2] = 0.7
