@@ -1,4 +1,5 @@
-"""Shared test fixtures: paths to the real data beside the checkout, a headless Qt platform."""
+"""Shared test fixtures: paths to the real data beside the checkout, a headless Qt platform, the
+Hypothesis profiles."""
 
 from __future__ import annotations
 
@@ -6,8 +7,16 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+# Property tests draw the same examples on every run ("ci", the default): a CI run on a fresh machine
+# passes or fails on the code alone, never on the draw. `pytest --hypothesis-profile explore` draws
+# new random examples (and keeps failures in .hypothesis/) to hunt for bugs.
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
+settings.register_profile("explore", print_blob=True)
+settings.load_profile("ci")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = (ROOT / ".." / "shared").resolve()
