@@ -100,6 +100,7 @@ def blas_threads(n: int = 1):
         import contextlib
         return contextlib.nullcontext()
 
+
 def depth_range_hint(depth: np.ndarray, cfg: "FusionConfig") -> str:
     """Why a depth image has no depth in the working range, for an error: ``""`` unless most of its
     valid depth (finite, > 0; metres) lies nearer than ``cfg.depth_min`` or farther than
