@@ -497,7 +497,14 @@ class FusionConfig:
     max_rmse : float
         Lost if the inliers' point-to-plane RMSE is larger.
     max_jump_m, max_jump_deg : float
-        Lost if the tracked pose differs from the prediction by more (per frame).
+        Lost if the tracked pose differs from the prediction by more (per frame). Where three or more
+        anchors fit the fused circles rigidly (within ``anchor_fit_tol_m`` RMS) at a pose beyond these
+        limits from the prediction, that pose is the prediction instead, as in a relocalisation: the
+        circles, paired by their numbering, know where the camera went in a sweep faster than
+        tracking follows (session 29).
+    anchor_fit_tol_m : float
+        RMS residual (metres) of the anchors' rigid fit below which their pose may replace the
+        prediction (above); 0 turns that off.
     relocalise_velocity_frames : int
         A frame relocalised at most this many frames after the last good one predicts the next
         frame with the mean motion per frame over that gap (0: with no motion, as before). With
@@ -560,6 +567,7 @@ class FusionConfig:
     omp_threads: int | None = 1
     max_jump_m: float = 0.08
     max_jump_deg: float = 12.0
+    anchor_fit_tol_m: float = 0.005
     relocalise_velocity_frames: int = 3
     block_resolution: int = 8
     block_count: int = 20000
@@ -1070,6 +1078,11 @@ class TSDFFusion:
             # relocalise from the anchors' rigid fit, against the model seen from there
             pred = kabsch(anchors[0], anchors[1])
             ref, far_ref = orthonormalize(pred), True
+        elif anchors is not None and len(anchors[0]) >= 3 and self._anchors_far(anchors, pred):
+            # three or more circles, paired by their numbering, fix a pose beyond the jump limit from the
+            # prediction (a sweep faster than tracking follows): start there, as a relocalisation does
+            pred = kabsch(anchors[0], anchors[1])
+            ref, far_ref, relocalising = orthonormalize(pred), True, True
         pred = orthonormalize(pred)
         d_roi_pred = self._mask_roi(d_int, self.K_int, pred)
         d_trk = downsample_depth(d_roi_pred, self.f_trk)
@@ -1126,6 +1139,19 @@ class TSDFFusion:
         res = TrackResult(idx, STATE_OK, pose.copy(), overlap, frac, rmse, True, "", ms)
         self.results.append(res)
         return res
+
+    def _anchors_far(self, anchors, pred: np.ndarray) -> bool:
+        """Whether the anchors' rigid fit (their centres within ``anchor_fit_tol_m`` RMS of the fused
+        circles) puts the camera beyond the jump limit from ``pred``."""
+        cfg = self.config
+        if not cfg.anchor_fit_tol_m > 0:
+            return False
+        T = orthonormalize(kabsch(anchors[0], anchors[1]))
+        r = transform_points(T, anchors[0]) - anchors[1]
+        if np.sqrt(np.mean(np.sum(r * r, axis=1))) > cfg.anchor_fit_tol_m:
+            return False
+        jump = invert_pose(pred) @ T
+        return bool(np.linalg.norm(jump[:3, 3]) > cfg.max_jump_m or rotation_angle_deg(jump[:3, :3]) > cfg.max_jump_deg)
 
     @property
     def _keyframes(self) -> bool:

@@ -344,7 +344,11 @@ class GeometryPass:
         j = dist.argmin(1)
         # while lost the prediction may be far off (the last good pose, a fast sweep's 20-30 degrees
         # away): match three or more circles by their shape, not by where the stale pose puts them
-        if fu.lost and pose is None and 3 <= det.n <= len(C):
+        if self.marker_config.key_radius_m and det.complete and det.n == len(C):
+            # numbered by the key circle: the circles are those of the fused square, whatever the pose
+            j = np.arange(det.n)
+            keep = np.ones(det.n, bool)
+        elif fu.lost and pose is None and 3 <= det.n <= len(C):
             j = self._match_lost(det)
             if j is None:
                 return None

@@ -58,8 +58,10 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: planar faces snapped to their plane; 28: refuse_fine_trunc_voxels in the configuration; 29: circles
 #: matched by their shape while lost, the motion over a relocalisation's gap, frames before the marker
 #: frame anchored on the circles seen so far and given marker-frame poses; 30: those poses only where
-#: the frames' own circles confirm them; 31: tracking normals' discontinuity threshold grows with depth)
-CHECKPOINT_VERSION = 31
+#: the frames' own circles confirm them; 31: tracking normals' discontinuity threshold grows with depth;
+#: 32: a complete keyed detection pairs its circles by number, tracking starts from the circles' pose
+#: where it lies beyond the jump limit from the prediction)
+CHECKPOINT_VERSION = 32
 
 
 def _broad_lobe(alpha) -> np.ndarray:

@@ -739,25 +739,28 @@ def test_tight_curvature_fraction_tells_a_tight_rim_from_a_capsule():
 
 
 def test_a_fast_sweep_loses_one_frame_not_every_other():
-    """14 degrees a frame, over the 12-degree jump limit: the second frame is lost and relocalised on
-    the circles; predicting the next frame with the motion per frame over that gap
-    (``relocalise_velocity_frames``) keeps the rest tracked. Predicting no motion after each
+    """14 degrees a frame, over the 12-degree jump limit. Where the circles' rigid fit puts the camera
+    beyond the limit from the prediction, tracking starts from it (``anchor_fit_tol_m``, session 29):
+    no frame is lost. Without that (tolerance 0), the second frame is lost and relocalised on the
+    circles; predicting the next frame with the motion per frame over that gap
+    (``relocalise_velocity_frames``) keeps the rest tracked, and predicting no motion after each
     relocalisation lost every other frame (and the 30-frame quick matte session's environment
     pass 15 of its 30 frames)."""
     s = make_sequence(12, 320, 240, seed=1, sweep_deg=150.0)
     lost = {}
-    for v in (0, 3):
-        gp = GeometryPass(GeometryConfig(fusion=FusionConfig(relocalise_velocity_frames=v)))
+    for v, tol in ((0, 0.0), (3, 0.0), (0, 0.005), (3, 0.005)):
+        gp = GeometryPass(GeometryConfig(fusion=FusionConfig(relocalise_velocity_frames=v, anchor_fit_tol_m=tol)))
         st = [gp.add_frame(f) for f in s.frames]
-        lost[v] = [i for i, x in enumerate(st) if x.state == "lost"]
+        lost[v, tol] = [i for i, x in enumerate(st) if x.state == "lost"]
         if v == 3:
             ok = [i for i, x in enumerate(st) if x.ok]
             rel = [invert_pose(st[0].pose) @ st[i].pose for i in ok]
             true = [invert_pose(s.poses[0]) @ s.poses[i] for i in ok]
             err = max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(rel, true))
             assert err < 0.005, f"{err * 1e3:.1f} mm"
-    assert len(lost[0]) >= 5, lost      # the old prediction: every other frame
-    assert len(lost[3]) <= 1, lost
+    assert len(lost[0, 0.0]) >= 5, lost      # the old prediction: every other frame
+    assert len(lost[3, 0.0]) <= 1, lost
+    assert lost[0, 0.005] == lost[3, 0.005] == [], lost
 
 
 def test_mean_motion_repeated_gives_the_motion_back():
