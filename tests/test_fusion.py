@@ -911,3 +911,42 @@ def test_depth_in_the_wrong_units_is_named_in_the_reason(scale, word):
     sparse = np.full(K.shape, np.nan, np.float32)
     sparse[:2, :2] = 0.7
     assert depth_range_hint(sparse, FusionConfig()) == "" and depth_range_hint(np.zeros(K.shape), FusionConfig()) == ""
+
+
+def test_a_keyed_complete_detection_pairs_its_circles_by_number_not_through_a_stale_prediction():
+    """Circles numbered by the key circle are the fused square's circles whatever the prediction says:
+    with the camera 40 degrees round the table from the prediction, pairing each centre with the
+    nearest fused circle through the prediction found none (checkpoint version 32)."""
+    from types import SimpleNamespace
+
+    from appfusion.markers import MarkerConfig, MarkerDetection
+
+    mc = MarkerConfig(radius_m=0.025, key_radius_m=0.035, side_m=0.3)
+    gp = GeometryPass(GeometryConfig(markers=mc))
+    h = 0.15
+    square = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], float)   # world = marker frame
+    gp.tracker.sums[:] = square
+    gp.tracker.weights[:] = 1.0
+    gp.tracker.counts[:] = 1
+    gp.tracker.normal_sum = np.array([0.0, 0.0, 1.0])
+
+    def look(az_deg):
+        a = np.radians(az_deg)
+        eye = np.array([0.5 * np.cos(a), 0.5 * np.sin(a), 0.45])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        return make_pose(np.stack([x, np.cross(z, x), z], 1), eye)
+
+    true, stale = look(0.0), look(40.0)
+    Ti = invert_pose(true)
+    det = MarkerDetection(transform_points(Ti, square), np.array([0.035, 0.025, 0.025, 0.025]), np.zeros((4, 2)),
+                          Ti[:3, :3] @ [0, 0, 1.0], 0.0, True, "ir")
+    gp.fusion = SimpleNamespace(predicted_pose=lambda: stale, lost=False)
+    cam, world, _ = gp._anchors(det)
+    np.testing.assert_allclose(world, square)                            # circle k is fused circle k
+    np.testing.assert_allclose(transform_points(true, cam), square, atol=1e-12)
+    # through the stale prediction every centre lands beyond the 7.5 cm a nearest pairing accepts: the
+    # frame had no anchors before, and tracking, 40 degrees off, lost it
+    d = np.linalg.norm(transform_points(stale, det.centers)[:, None] - square[None], axis=2)
+    assert d.min(axis=1).min() > max(3 * mc.radius_m, 0.05)
