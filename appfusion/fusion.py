@@ -141,6 +141,12 @@ def mean_motion(T: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def pose_jump(pred: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
+    """How far ``pose`` lies from ``pred`` (both 4x4, camera to world): metres and degrees."""
+    jump = invert_pose(pred) @ pose
+    return float(np.linalg.norm(jump[:3, 3])), rotation_angle_deg(jump[:3, :3])
+
+
 def orthonormalize(T: np.ndarray) -> np.ndarray:
     """The nearest rigid transform to a 4x4 matrix (rotation by SVD); stops round-off in chains of
     pose products from growing into a scale or shear."""
@@ -1078,11 +1084,12 @@ class TSDFFusion:
             # relocalise from the anchors' rigid fit, against the model seen from there
             pred = kabsch(anchors[0], anchors[1])
             ref, far_ref = orthonormalize(pred), True
-        elif anchors is not None and len(anchors[0]) >= 3 and self._anchors_far(anchors, pred):
+        elif anchors is not None and len(anchors[0]) >= 3 and (
+                (far := self._anchor_pose_beyond_jump(anchors, pred)) is not None):
             # three or more circles, paired by their numbering, fix a pose beyond the jump limit from the
             # prediction (a sweep faster than tracking follows): start there, as a relocalisation does
-            pred = kabsch(anchors[0], anchors[1])
-            ref, far_ref, relocalising = orthonormalize(pred), True, True
+            pred, ref = far, far.copy()
+            far_ref = relocalising = True
         pred = orthonormalize(pred)
         d_roi_pred = self._mask_roi(d_int, self.K_int, pred)
         d_trk = downsample_depth(d_roi_pred, self.f_trk)
@@ -1094,9 +1101,7 @@ class TSDFFusion:
                 d_trk, pred, ref, cfg.relocalise_depth_diff if relocalising else cfg.depth_diff, anchors,
                 all_blocks=far_ref)
         ms.update(tms)
-        jump = invert_pose(pred) @ pose
-        jump_m = float(np.linalg.norm(jump[:3, 3]))
-        jump_deg = rotation_angle_deg(jump[:3, :3])
+        jump_m, jump_deg = pose_jump(pred, pose)
         scale = 2.5 if relocalising else 1.0
         reason = ""
         if overlap < cfg.min_overlap:
@@ -1140,18 +1145,18 @@ class TSDFFusion:
         self.results.append(res)
         return res
 
-    def _anchors_far(self, anchors, pred: np.ndarray) -> bool:
-        """Whether the anchors' rigid fit (their centres within ``anchor_fit_tol_m`` RMS of the fused
-        circles) puts the camera beyond the jump limit from ``pred``."""
+    def _anchor_pose_beyond_jump(self, anchors, pred: np.ndarray) -> np.ndarray | None:
+        """The anchors' rigid fit (camera to world) where it fits the fused circles within
+        ``anchor_fit_tol_m`` RMS and lies beyond the jump limit from ``pred``; else None."""
         cfg = self.config
         if not cfg.anchor_fit_tol_m > 0:
-            return False
+            return None
         T = orthonormalize(kabsch(anchors[0], anchors[1]))
         r = transform_points(T, anchors[0]) - anchors[1]
         if np.sqrt(np.mean(np.sum(r * r, axis=1))) > cfg.anchor_fit_tol_m:
-            return False
-        jump = invert_pose(pred) @ T
-        return bool(np.linalg.norm(jump[:3, 3]) > cfg.max_jump_m or rotation_angle_deg(jump[:3, :3]) > cfg.max_jump_deg)
+            return None
+        jump_m, jump_deg = pose_jump(pred, T)
+        return T if (jump_m > cfg.max_jump_m or jump_deg > cfg.max_jump_deg) else None
 
     @property
     def _keyframes(self) -> bool:
@@ -1164,8 +1169,8 @@ class TSDFFusion:
         cfg = self.config
         if self._key_pose is None:
             return False, None
-        rel = invert_pose(self._key_pose) @ pose
-        if not (np.linalg.norm(rel[:3, 3]) < cfg.keyframe_m and rotation_angle_deg(rel[:3, :3]) < cfg.keyframe_deg):
+        moved_m, turned_deg = pose_jump(self._key_pose, pose)
+        if not (moved_m < cfg.keyframe_m and turned_deg < cfg.keyframe_deg):
             return False, None
         blocks = self._frame_blocks(depth_int, pose)
         if blocks.shape[0] == 0:

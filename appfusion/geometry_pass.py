@@ -334,21 +334,21 @@ class GeometryPass:
     def _anchors(self, det: MarkerDetection, pose: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """(centres in the camera frame, the fused circles they are, the plane normal), world frame:
         each detected centre matched to the nearest fused circle through ``pose`` (camera to world;
-        default the tracker's prediction for the next frame), or None."""
+        default the tracker's prediction for the next frame), or None. A complete detection with the
+        key circle (``MarkerConfig.key_radius_m``) keeps its own, absolute numbering, whatever the pose
+        (a 30-degree step of the prediction pairs no circle within the distance allowed)."""
         if not (self.config.use_anchors and self.tracker.initialised and det.n):
             return None
+        C = self.tracker.centers
+        if self.marker_config.key_radius_m and det.complete and det.n == len(C):
+            return det.centers, C, self.tracker.normal
         fu = self.fusion
         W = transform_points(fu.predicted_pose() if pose is None else pose, det.centers)
-        C = self.tracker.centers
         dist = np.linalg.norm(W[:, None] - C[None], axis=2)
         j = dist.argmin(1)
         # while lost the prediction may be far off (the last good pose, a fast sweep's 20-30 degrees
         # away): match three or more circles by their shape, not by where the stale pose puts them
-        if self.marker_config.key_radius_m and det.complete and det.n == len(C):
-            # numbered by the key circle: the circles are those of the fused square, whatever the pose
-            j = np.arange(det.n)
-            keep = np.ones(det.n, bool)
-        elif fu.lost and pose is None and 3 <= det.n <= len(C):
+        if fu.lost and pose is None and 3 <= det.n <= len(C):
             j = self._match_lost(det)
             if j is None:
                 return None
@@ -476,15 +476,12 @@ class GeometryPass:
         last good pose's wins: the camera has not turned 45 degrees about the table while lost.
         Matching by nearest circle through that stale pose instead paired three circles wrongly after
         a 24-degree gap, and the relocalised pose ran away (the 30-frame quick matte session).
-        A complete detection with the key circle (``MarkerConfig.key_radius_m``) keeps its own,
-        absolute numbering.
+        (A complete detection with the key circle never gets here: :meth:`_anchors` numbers it.)
         """
         from itertools import permutations
 
         from .fusion import rotation_angle_deg
         C = self.tracker.centers
-        if self.marker_config.key_radius_m and det.complete:
-            return np.arange(len(C))
         if tol_m is None:
             tol_m = self._circle_fit_tol_m
         last = self.fusion.predicted_pose()

@@ -86,7 +86,7 @@ def register(sub) -> None:
     g.add_argument("--pass-frames", metavar="LIST",
                    help="frames per pass, e.g. ir-calibration=300,environment=900,geometry=1800,rgb=1800 "
                         "(passes not listed keep their default); the passes advance by these counts")
-    g.add_argument("--dark-frames", type=int, default=DEFAULT_DARK_FRAMES, metavar="N",
+    g.add_argument("--dark-frames", type=int, default=None, metavar="N",
                    help=f"emitter-off frames at the start of the ir-calibration pass (default {DEFAULT_DARK_FRAMES})")
     g.add_argument("--marker-radius", type=float, default=None, metavar="M",
                    help=f"radius of the printed white circles in metres (default {DEFAULT_MARKERS['radius_m']})")
@@ -117,12 +117,13 @@ def run(args) -> int:
         cfg.normal_refine_rounds = args.normal_refine       # checked by ScanRunner (>= 0)
     live_only = [f for f, v in (("--pass-frames", args.pass_frames), ("--marker-radius", args.marker_radius),
                                 ("--key-radius", args.key_radius), ("--marker-side", args.marker_side),
-                                ("--dark-frames", None if args.dark_frames == DEFAULT_DARK_FRAMES else 1))
+                                ("--dark-frames", args.dark_frames))
                  if v is not None]
     if live_only and not args.device:
         raise AppFusionError(f"{', '.join(live_only)}: for live scans (--device) only; a recording keeps the "
                              f"pass boundaries and markers it was recorded with")
-    if args.dark_frames < 0:
+    dark = DEFAULT_DARK_FRAMES if args.dark_frames is None else args.dark_frames
+    if dark < 0:
         raise AppFusionError(f"--dark-frames must be 0 or more frames, got {args.dark_frames}")
     for flag, v, low in (("--marker-radius", args.marker_radius, False), ("--key-radius", args.key_radius, True),
                          ("--marker-side", args.marker_side, False)):
@@ -140,7 +141,7 @@ def run(args) -> int:
         from drivers import open_device
 
         source = open_device(args.device)
-        summary = scan_live(source, args.out, config=cfg, pass_frames=counts, dark_frames=args.dark_frames,
+        summary = scan_live(source, args.out, config=cfg, pass_frames=counts, dark_frames=dark,
                             interactive=interactive, markers=markers, envmap=args.envmap,
                             ir_profile=args.ir_profile, progress=not args.no_progress, spec=args.device)
         print(summary)
