@@ -62,6 +62,10 @@ class GeometryConfig:
         Margin around the box (and circles) within which depth is fused, metres.
     use_anchors : bool
         Use detected circle centres as tracking anchors.
+    three_circle_numbers : bool
+        With a key circle, number three circles by it (:func:`appfusion.markers.number_three`): they
+        start the marker frame before a frame shows all four, and they pair with the fused circles
+        by number rather than through the predicted pose (default; beyond the paper).
     n_points : int
         Points sampled on the object's surface (paper: 100k).
     bilateral_sigma_s : float or None
@@ -141,6 +145,7 @@ class GeometryConfig:
     box_z_min: float | None = None
     roi_margin: float = 0.05
     use_anchors: bool = True
+    three_circle_numbers: bool = True
     n_points: int = 100_000
     bilateral_sigma_s: float | None = None
     bilateral_sigma_n: float = 0.25
@@ -281,7 +286,7 @@ class GeometryPass:
         self.refuse_scale: float | None = None
         self.tight_fraction: float | None = None
         self.fine_triggered = False                  # refuse_fine_scale applied (the object curves tightly)
-        self.tracker = MarkerTracker(self.marker_config)
+        self.tracker = MarkerTracker(self.marker_config, from_three=self.config.three_circle_numbers)
         self.states: list[FrameState] = []
         self.box: ObjectBox | None = None
         self._last_key: tuple[int, float] | None = None
@@ -336,16 +341,40 @@ class GeometryPass:
         each detected centre matched to the nearest fused circle through ``pose`` (camera to world;
         default the tracker's prediction for the next frame), or None. A complete detection with the
         key circle (``MarkerConfig.key_radius_m``) keeps its own, absolute numbering, whatever the pose
-        (a 30-degree step of the prediction pairs no circle within the distance allowed)."""
+        (a 30-degree step of the prediction pairs no circle within the distance allowed); so do three
+        circles numbered by the key (:meth:`MarkerTracker.number_three`) unless the prediction pairs
+        all three otherwise (a misread radius turns the numbering by a quarter turn, which tracking
+        does not). A circle the tracker has only inferred (:attr:`MarkerTracker.inferred`) is no
+        anchor: its place is not a measurement."""
+        pairs = self._paired(det, pose)
+        if pairs is None:
+            return None
+        k, j = pairs
+        measured = ~self.tracker.inferred[j]
+        if not measured.any():
+            return None
+        # with the support plane's normal: a centre's error across the plane weighs more than within
+        # it (FusionConfig.anchor_normal_weight)
+        return det.centers[k[measured]], self.tracker.centers[j[measured]], self.tracker.normal
+
+    def _paired(self, det: MarkerDetection, pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(detections, fused circle numbers) of :meth:`_anchors`, or None."""
         if not (self.config.use_anchors and self.tracker.initialised and det.n):
             return None
         C = self.tracker.centers
+        every = np.arange(det.n)
         if self.marker_config.key_radius_m and det.complete and det.n == len(C):
-            return det.centers, C, self.tracker.normal
+            return every, every
         fu = self.fusion
         W = transform_points(fu.predicted_pose() if pose is None else pose, det.centers)
         dist = np.linalg.norm(W[:, None] - C[None], axis=2)
         j = dist.argmin(1)
+        if det.n == 3 and self.config.three_circle_numbers:
+            idx = self.tracker.number_three(det)
+            if idx is not None:
+                near = dist[every, j] < max(3 * self.marker_config.radius_m, 0.05)
+                if fu.lost or not near.all() or len(set(j)) < 3 or np.array_equal(j, idx):
+                    return every, idx
         # while lost the prediction may be far off (the last good pose, a fast sweep's 20-30 degrees
         # away): match three or more circles by their shape, not by where the stale pose puts them
         if fu.lost and pose is None and 3 <= det.n <= len(C):
@@ -354,7 +383,7 @@ class GeometryPass:
                 return None
             keep = np.ones(det.n, bool)
         else:
-            dj = dist[np.arange(det.n), j]
+            dj = dist[every, j]
             keep = dj < max(3 * self.marker_config.radius_m, 0.05)
             # two detections near one fused circle (an ellipse found twice, a reflection): the nearer
             # one is that circle. Dropping every anchor of the frame instead let the ICP slide 4 cm
@@ -365,9 +394,7 @@ class GeometryPass:
                     keep[dup[dup != dup[np.argmin(dj[dup])]]] = False
         if keep.sum() == 0 or len(set(j[keep])) < keep.sum():
             return None
-        # with the support plane's normal: a centre's error across the plane weighs more than within
-        # it (FusionConfig.anchor_normal_weight)
-        return det.centers[keep], C[j[keep]], self.tracker.normal
+        return every[keep], j[keep]
 
     def _provisional_anchors(self, det: MarkerDetection) -> tuple[np.ndarray, np.ndarray] | None:
         """Anchors before the marker frame exists: each detected centre paired with the nearest circle

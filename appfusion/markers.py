@@ -48,7 +48,8 @@ from .errors import AppFusionError, EstimationError
 from .frame import REC709_LUMA, Frame, Intrinsics, invert_pose, transform_points
 
 __all__ = ["MarkerConfig", "Ellipse", "MarkerDetection", "MarkerTracker", "ObjectBox", "view_weight",
-           "detect_circles", "fit_plane_ransac", "circle_on_plane", "refine_circle", "number_square", "marker_frame",
+           "detect_circles", "fit_plane_ransac", "circle_on_plane", "refine_circle", "number_square", "number_three",
+           "key_mask", "marker_frame",
            "detect_markers", "marker_config_from_meta"]
 
 
@@ -498,6 +499,94 @@ def number_square(centers: np.ndarray, normal: np.ndarray, x_hint: np.ndarray) -
     return order
 
 
+def key_mask(radii: np.ndarray, config: MarkerConfig, margin: float = 0.5) -> np.ndarray | None:
+    """Which measured radii are the key circle's (circle 1), or None where that is unclear.
+
+    Parameters
+    ----------
+    radii : (K,) array
+        Measured circle radii, metres.
+    config : MarkerConfig
+        Needs ``key_radius_m``.
+    margin : float
+        A radius is the key's within ``margin`` times the difference of the two printed radii of
+        ``key_radius_m``, a plain circle's within that of ``radius_m``. At 0.5 (default) every radius
+        is one or the other; below it a radius in the band between them makes the answer None (a
+        partly hidden 25 mm circle fitted at 31.9 mm, beside a 35 mm key).
+
+    Returns
+    -------
+    (K,) bool array, or None without a key circle in ``config`` or with a radius in neither band.
+    """
+    if not config.key_radius_m:
+        return None
+    r = np.asarray(radii, float)
+    key_r, r0 = float(config.key_radius_m), float(config.radius_m)
+    band = margin * abs(key_r - r0)
+    is_key = np.abs(r - key_r) < band
+    if not np.all(is_key | (np.abs(r - r0) < band)):
+        return None
+    return is_key
+
+
+def number_three(det: "MarkerDetection", config: MarkerConfig, side_m: float | None = None,
+                 margin: float = 0.5) -> np.ndarray | None:
+    """Circle numbers (0-based) of three detected circles of the printed square, or None.
+
+    Three corners of the square determine it: the right-angle corner ``c`` is the one opposite the
+    longest side; its neighbours are ``c - 1`` and ``c + 1`` (cyclic), told apart by the handedness
+    of the triangle about the plane normal (circles 1-4 run clockwise seen from +z); ``c`` is fixed
+    by the key circle if it is among the three, else the missing circle is the key (circle 1) and
+    ``c`` is circle 3 (beyond the paper, whose four circles are alike).
+
+    Parameters
+    ----------
+    det : MarkerDetection
+        Three circles (``det.n == 3``) with the support plane's normal.
+    config : MarkerConfig
+        Needs ``key_radius_m``.
+    side_m : float, optional
+        The square's side, metres; default ``config.side_m``, else the mean of the triangle's two
+        legs. Legs and hypotenuse must match it within 1.5 cm.
+    margin : float
+        Radius bands of the key and the plain circles (:func:`key_mask`).
+
+    Returns
+    -------
+    (3,) int array, or None: not three circles, no normal or key circle, a triangle that is not
+    three corners of the square, more than one key-sized circle, or a radius in neither band.
+    """
+    if det.n != 3 or det.normal is None or not config.key_radius_m:
+        return None
+    P = np.asarray(det.centers, float)
+    if not np.all(np.isfinite(P)):
+        return None
+    d = np.linalg.norm(P[[1, 2, 0]] - P[[2, 0, 1]], axis=1)     # side opposite each vertex
+    c = int(np.argmax(d))
+    a, b = [i for i in range(3) if i != c]
+    legs = np.linalg.norm(P[[a, b]] - P[c], axis=1)
+    side = float(side_m or config.side_m or legs.mean())
+    if np.abs(legs - side).max() > 0.015 or abs(d[c] - side * np.sqrt(2)) > 0.015:
+        return None
+    # order the legs: p = c - 1, q = c + 1 satisfy ((p - c) x (q - c)) . n > 0
+    if np.dot(np.cross(P[a] - P[c], P[b] - P[c]), det.normal) < 0:
+        a, b = b, a
+    is_key = key_mask(det.radii, config, margin)
+    if is_key is None or is_key.sum() > 1:
+        return None
+    if not is_key.any():
+        nc = 2                                      # circles 2, 3, 4 seen: the corner is circle 3
+    elif is_key[c]:
+        nc = 0
+    elif is_key[a]:                                 # a = c - 1 is circle 1
+        nc = 1
+    else:                                           # b = c + 1 is circle 1
+        nc = 3
+    out = np.empty(3, np.int64)
+    out[c], out[a], out[b] = nc, (nc - 1) % 4, (nc + 1) % 4
+    return out
+
+
 def marker_frame(centers: np.ndarray, normal: np.ndarray | None = None) -> np.ndarray:
     """Marker-to-camera (or marker-to-world) 4x4 transform from the four numbered circle centres.
 
@@ -754,21 +843,42 @@ class MarkerTracker:
         default 1.5 x radius.
     view_weighting : bool, optional
         Weight each centre by ``sin(e)^2`` (default); False: the plain mean.
+    from_three : bool, optional
+        With a key circle (``config.key_radius_m``), let three circles numbered by
+        :func:`number_three` start the tracker before any frame shows all four (default): the fourth
+        centre is put where the square puts it (:attr:`inferred`) until a detection of it replaces it.
+        Only radii clearly the key's or a plain circle's count (:func:`key_mask`, margin
+        :attr:`THREE_RADIUS_MARGIN`). On the 12-frames-a-pass synthetic Kinect sphere (30 degrees of
+        orbit a frame) the geometry pass starts with three circles, and the marker frame was only
+        defined at its eleventh frame; beyond the paper.
     """
+
+    #: radius band of :func:`key_mask` for numbering three circles: a quarter of the difference of
+    #: the printed radii (2.5 mm for 25 and 35 mm circles)
+    THREE_RADIUS_MARGIN = 0.25
 
     config: MarkerConfig = field(default_factory=MarkerConfig)
     match_dist: float | None = None
     view_weighting: bool = True
+    from_three: bool = True
     sums: np.ndarray = field(default_factory=lambda: np.zeros((4, 3)))      # weighted sums of centres
     weights: np.ndarray = field(default_factory=lambda: np.zeros(4))        # sums of their weights
     counts: np.ndarray = field(default_factory=lambda: np.zeros(4))         # detections fused
+    #: circles not detected yet, put where the square of the other three puts them
+    inferred: np.ndarray = field(default_factory=lambda: np.zeros(4, bool))
     normal_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))
     n_complete: int = 0
     n_updates: int = 0
 
     @property
     def initialised(self) -> bool:
-        return bool(self.counts.min() > 0)
+        return bool(np.all((self.counts > 0) | self.inferred))
+
+    def number_three(self, det: MarkerDetection) -> np.ndarray | None:
+        """Circle numbers of a three-circle detection (:func:`number_three`, with the printed side or,
+        once known, the fused one, and clear radii only), or None."""
+        side = self.config.side_m or (self.side() if self.initialised else None)
+        return number_three(det, self.config, side, self.THREE_RADIUS_MARGIN)
 
     @property
     def centers(self) -> np.ndarray:
@@ -791,18 +901,40 @@ class MarkerTracker:
         nw = None if det.normal is None else pose[:3, :3] @ det.normal
         w = self._weights(det)
         if not self.initialised:
-            if not det.complete:
+            if det.complete:
+                self.sums[:] = w[:, None] * W
+                self.weights[:] = w
+                self.counts[:] = 1
+                self.normal_sum = nw.copy()
+                self.n_complete = 1
+                self.n_updates = 1
+                return np.arange(4)
+            idx = self.number_three(det) if self.from_three else None
+            if idx is None:
                 return assign
-            self.sums[:] = w[:, None] * W
-            self.weights[:] = w
-            self.counts[:] = 1
+            m = int(np.setdiff1d(np.arange(4), idx)[0])
+            P = np.empty((4, 3))
+            P[idx] = W
+            P[m] = P[(m - 1) % 4] + P[(m + 1) % 4] - P[(m + 2) % 4]   # the square's missing corner
+            w4 = np.empty(4)
+            w4[idx] = w
+            w4[m] = w.min()
+            self.sums[:] = w4[:, None] * P
+            self.weights[:] = w4
+            self.counts[:] = 0
+            self.counts[idx] = 1
+            self.inferred[:] = False
+            self.inferred[m] = True
             self.normal_sum = nw.copy()
-            self.n_complete = 1
             self.n_updates = 1
-            return np.arange(4)
+            return idx
         assign = self._assign(W, self.centers)
         for k, j in enumerate(assign):
             if j >= 0:
+                if self.inferred[j]:                    # its first detection replaces the inferred centre
+                    self.sums[j] = 0.0
+                    self.weights[j] = 0.0
+                    self.inferred[j] = False
                 self.sums[j] += w[k] * W[k]
                 self.weights[j] += w[k]
                 self.counts[j] += 1
@@ -869,6 +1001,7 @@ class MarkerTracker:
         if (counts == 0).any() or not np.linalg.norm(nsum) > 0:
             return False
         self.sums, self.weights, self.counts, self.normal_sum = sums, weights, counts, nsum
+        self.inferred[:] = False
         return True
 
     @property

@@ -60,8 +60,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: frame anchored on the circles seen so far and given marker-frame poses; 30: those poses only where
 #: the frames' own circles confirm them; 31: tracking normals' discontinuity threshold grows with depth;
 #: 32: a complete keyed detection pairs its circles by number, tracking starts from the circles' pose
-#: where it lies beyond the jump limit from the prediction)
-CHECKPOINT_VERSION = 32
+#: where it lies beyond the jump limit from the prediction; 33: three circles numbered by the key
+#: circle start the marker frame and pair by number)
+CHECKPOINT_VERSION = 33
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -2022,41 +2023,11 @@ class _MarkerPose:
         return np.abs(np.asarray(det.radii, float) - key_r) < 0.5 * abs(key_r - r0)
 
     def _three(self, det) -> np.ndarray | None:
-        """Circle numbers (0-based) of three detected circles, or None.
+        """Circle numbers (0-based) of three detected circles, or None
+        (:func:`appfusion.markers.number_three` with the printed side)."""
+        from .markers import number_three
 
-        Three corners of the square determine it: the right-angle corner ``c`` is the one opposite
-        the longest side; its neighbours are ``c - 1`` and ``c + 1`` (cyclic), told apart by the
-        handedness of the triangle about the plane normal (circles 1-4 run clockwise seen from +z);
-        ``c`` is fixed by the key circle if it is among the three, else the missing circle is the key
-        (circle 1) and ``c`` is circle 3. Side lengths must match the printed layout within 1.5 cm.
-        """
-        if det.n != 3 or det.normal is None:
-            return None
-        P = np.asarray(det.centers, float)
-        side = float(self.cfg.side_m)
-        d = np.linalg.norm(P[[1, 2, 0]] - P[[2, 0, 1]], axis=1)     # side opposite each vertex
-        c = int(np.argmax(d))
-        a, b = [i for i in range(3) if i != c]
-        legs = np.linalg.norm(P[[a, b]] - P[c], axis=1)
-        if np.abs(legs - side).max() > 0.015 or abs(d[c] - side * np.sqrt(2)) > 0.015:
-            return None
-        # order the legs: p = c - 1, q = c + 1 satisfy ((p - c) x (q - c)) . n > 0
-        if np.dot(np.cross(P[a] - P[c], P[b] - P[c]), det.normal) < 0:
-            a, b = b, a
-        is_key = self._is_key(det)
-        if is_key.sum() > 1:
-            return None
-        if not is_key.any():
-            nc = 2                                      # circles 2, 3, 4 seen: the corner is circle 3
-        elif is_key[c]:
-            nc = 0
-        elif is_key[a]:                                 # a = c - 1 is circle 1
-            nc = 1
-        else:                                           # b = c + 1 is circle 1
-            nc = 3
-        out = np.empty(3, np.int64)
-        out[c], out[a], out[b] = nc, (nc - 1) % 4, (nc + 1) % 4
-        return out
+        return number_three(det, self.cfg, self.cfg.side_m)
 
 
 class _Geometry:

@@ -185,3 +185,53 @@ def test_circles_that_fit_no_square_give_no_anchors_while_lost():
     cam = transform_points(invert_pose(true), pts)
     det = MarkerDetection(cam, np.full(3, 0.02), np.zeros((3, 2)), np.array([0, 0, 1.0]), 0.0, False, "ir")
     assert gp._anchors(det) is None
+
+
+def _keyed_pass(pose, lost=False):
+    """:func:`_pass_with_square` with a key circle (35 mm, the others 25 mm): circle 1 at (+, +), then
+    clockwise seen from +z, as printed (``MarkerConfig.centres``)."""
+    from types import SimpleNamespace
+
+    from appfusion.geometry_pass import GeometryConfig, GeometryPass
+    from appfusion.markers import MarkerConfig
+
+    cfg = MarkerConfig(radius_m=0.025, side_m=0.3, key_radius_m=0.035)
+    gp = GeometryPass(GeometryConfig(markers=cfg))
+    C = cfg.centres()
+    gp.tracker.sums[:] = C
+    gp.tracker.counts[:] = 1
+    gp.tracker.weights[:] = 1
+    gp.tracker.normal_sum[:] = [0, 0, 2.0]
+    gp.fusion = SimpleNamespace(predicted_pose=lambda: pose.copy(), lost=lost)
+    return gp, C, cfg
+
+
+@pytest.mark.parametrize("seen", [[0, 1, 2], [3, 1, 0], [2, 3, 1], [1, 2, 3]])
+def test_three_circles_numbered_by_the_key_pair_by_number_through_a_stale_prediction(seen):
+    """Three circles seen 30 degrees of orbit from the prediction (tracking not lost: a fast sweep
+    between two tracked frames): numbered by the key circle, they pair with the fused circles they
+    are. A key misread as a plain circle numbers them a quarter turn off; where the prediction is
+    right and pairs all three otherwise, the prediction's pairing is kept."""
+    from appfusion.frame import invert_pose, transform_points
+    from appfusion.markers import MarkerDetection
+
+    true = _orbit_pose(40.0)
+    rng = np.random.default_rng(len(seen) + seen[0])
+    Ti = invert_pose(true)
+    normal = Ti[:3, :3] @ np.array([0, 0, 1.0])
+    gp, C, cfg = _keyed_pass(_orbit_pose(10.0))
+    cam = transform_points(Ti, C[seen]) + rng.normal(0, 0.001, (3, 3))
+    det = MarkerDetection(cam, cfg.radii()[seen], np.zeros((3, 2)), normal, 0.0, False, "ir")
+    src, dst, _ = gp._anchors(det)
+    assert np.allclose(dst, C[seen]) and np.allclose(src, cam)
+    W = transform_points(_orbit_pose(10.0), cam)          # the stale pose pairs them otherwise, or not at all
+    d = np.linalg.norm(W[:, None] - C[None], axis=2)
+    assert not (d.min(1) < 0.075).all() or not np.array_equal(d.argmin(1), seen)
+    # a misread radius, a right prediction: the prediction's pairing
+    misread = MarkerDetection(cam, np.full(3, 0.025) if 0 in seen else np.r_[0.035, 0.025, 0.025], np.zeros((3, 2)),
+                              normal, 0.0, False, "ir")
+    gp, C, cfg = _keyed_pass(true)
+    assert gp.tracker.number_three(misread) is not None
+    assert not np.array_equal(gp.tracker.number_three(misread), seen)
+    src, dst, _ = gp._anchors(misread)
+    assert np.allclose(dst, C[seen])

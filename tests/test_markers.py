@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 import open3d as o3d
@@ -167,6 +169,45 @@ def test_marker_tracker_running_mean():
     assert np.allclose(tr.marker_to_world(), world, atol=5e-4)
     assert tr.side() == pytest.approx(0.3, abs=5e-4)
     assert tr.n_complete == 200
+
+
+def test_three_circles_numbered_by_the_key_start_the_tracker():
+    """With a key circle, any three circles, detected in any order, start the tracker: they are
+    numbered by the key (or by its absence), the fourth centre is put at the square's missing corner
+    and flagged as inferred until a detection of it replaces it. Without a key circle, with
+    ``from_three`` off, with a radius between the key's and a plain circle's, or with a triangle that
+    is not three corners of the square, they do not."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(7)
+    cfg = MarkerConfig(radius_m=0.025, side_m=0.3, key_radius_m=0.035)
+    world = _random_marker_pose(rng)                          # marker -> world
+    truth = transform_points(world, SQUARE)                   # circle 1 (the key) at (+, +)
+    radii = cfg.radii()
+    for keep in itertools.combinations(range(4), 3):
+        keep = [int(k) for k in rng.permutation(keep)]
+        m = ({0, 1, 2, 3} - set(keep)).pop()
+        pose = make_pose(o3d.geometry.get_rotation_matrix_from_xyz(rng.normal(0, 0.3, 3)), rng.normal(0, 0.1, 3))
+        Ci = invert_pose(pose)
+        normal = Ci[:3, :3] @ world[:3, 2]
+        det = MarkerDetection(transform_points(Ci, truth[keep]) + rng.normal(0, 2e-4, (3, 3)), radii[keep],
+                              np.zeros((3, 2)), normal, 0.0, False, "ir")
+        tr = MarkerTracker(cfg)
+        assert tr.update(det, pose).tolist() == keep
+        assert tr.initialised and tr.n_complete == 0
+        assert tr.inferred.tolist() == [i == m for i in range(4)] and tr.counts[m] == 0
+        assert np.linalg.norm(tr.centers - truth, axis=1).max() < 2e-3
+        assert np.allclose(tr.marker_to_world(), world, atol=3e-3)
+        full = MarkerDetection(transform_points(Ci, truth), radii, np.zeros((4, 2)), normal, 0.0, True, "ir")
+        assert tr.update(full, pose).tolist() == [0, 1, 2, 3]
+        assert not tr.inferred.any() and tr.counts[m] == 1
+        assert np.linalg.norm(tr.centers[m] - truth[m]) < 1e-9   # the detection replaced the inferred centre
+        for other, d in [(MarkerTracker(cfg, from_three=False), det),
+                         (MarkerTracker(replace(cfg, key_radius_m=None)), det),
+                         (MarkerTracker(cfg), replace(det, radii=np.r_[0.031, radii[keep][1:]])),
+                         (MarkerTracker(cfg), replace(det, radii=np.full(3, 0.035))),
+                         (MarkerTracker(cfg), replace(det, centers=1.2 * det.centers - 0.2 * det.centers.mean(0)))]:
+            assert (other.update(d, pose) == -1).all() and not other.initialised
 
 
 def _look_at(eye: np.ndarray, target=np.zeros(3)) -> np.ndarray:
