@@ -979,8 +979,10 @@ class MarkerTracker:
         Returns
         -------
         bool
-            True when every circle was matched at least once and the centres were replaced; False
-            (the current centres kept) otherwise, or before the tracker is initialised.
+            True when every circle was matched at least once, or all but one only inferred so far
+            (:attr:`inferred`: put again at the square's corner from the other three), and the
+            centres were replaced; False (the current centres kept) otherwise, or before the tracker is
+            initialised.
         """
         if not self.initialised:
             return False
@@ -998,10 +1000,18 @@ class MarkerTracker:
             np.add.at(counts, assign[hit], 1)
             if det.normal is not None and hit.any():
                 nsum += pose[:3, :3] @ det.normal
-        if (counts == 0).any() or not np.linalg.norm(nsum) > 0:
+        unseen = counts == 0
+        # a circle never detected, only inferred, is inferred again from the other three
+        if unseen.sum() > 1 or (unseen & ~self.inferred).any() or not np.linalg.norm(nsum) > 0:
             return False
+        if unseen.any():
+            m = int(np.flatnonzero(unseen)[0])
+            P = sums / np.maximum(weights, 1e-300)[:, None]
+            w = weights[[(m - 1) % 4, (m + 1) % 4, (m + 2) % 4]].min()
+            sums[m] = w * (P[(m - 1) % 4] + P[(m + 1) % 4] - P[(m + 2) % 4])
+            weights[m] = w
         self.sums, self.weights, self.counts, self.normal_sum = sums, weights, counts, nsum
-        self.inferred[:] = False
+        self.inferred[:] = unseen
         return True
 
     @property

@@ -808,6 +808,53 @@ def test_three_circles_numbered_by_the_key_track_a_30_degree_sweep(kinect_sphere
     assert len(tracked[True]) >= 10 and len(tracked[False]) <= 3, tracked
 
 
+def test_a_pass_that_never_sees_one_circle_gets_its_marker_frame_from_the_other_three(kinect_sphere, monkeypatch):
+    """Circle 4 hidden in every frame of the Kinect sphere's geometry pass (say, behind the object
+    all along): with the key circle, three circles give the marker frame, the fourth centre inferred
+    at the square's corner, kept so through the re-fusion's refit. Before, such a pass ended in "the
+    four white circles were never seen together"."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    import appfusion.geometry_pass as G
+    from appfusion.pipeline import plan_passes
+    from replay.session import SessionReader
+
+    r = SessionReader(kinect_sphere)
+    gt = np.loadtxt(kinect_sphere / "truth" / "groundtruth.txt")
+
+    def truth(i):
+        return make_pose(Rotation.from_quat(gt[i, 4:8]).as_matrix(), gt[i, 1:4])
+
+    real = G.detect_markers
+
+    def detect(frame, config=None, stream=None):
+        d = real(frame, config, stream)
+        if d.n:
+            W = transform_points(truth(frame.index), d.centers)                   # marker frame
+            keep = np.linalg.norm(W - [-0.15, 0.15, 0.0], axis=1) > 0.05          # circle 4 hidden
+            d = replace(d, centers=d.centers[keep], radii=d.radii[keep], pixels=d.pixels[keep], complete=False)
+        return d
+
+    monkeypatch.setattr(G, "detect_markers", detect)
+    a, b = plan_passes(r)["geometry"]
+    frames = [r.frame(i) for i in range(a, b)]
+    gp = GeometryPass(GeometryConfig(n_points=2000), meta=r.meta)
+    states = [gp.add_frame(f) for f in frames]
+    assert not any(st.markers_complete for st in states)
+    assert gp.tracker.inferred.tolist() == [False, False, False, True]
+    assert gp.refuse(frames) >= 2 and gp.tracker.inferred[3]
+    layout = np.array([[0.15, 0.15, 0], [0.15, -0.15, 0], [-0.15, -0.15, 0], [-0.15, 0.15, 0]])
+    C = transform_points(invert_pose(gp.tracker.marker_to_world()), gp.tracker.centers)
+    assert np.abs(C - layout).max() < 0.002
+    res = gp.result()
+    assert np.median(np.abs(np.linalg.norm(res.points - [0, 0, 0.07], axis=1) - 0.07)) < 0.001
+    for st in states:
+        if st.ok and st.pose_marker is not None:
+            assert np.linalg.norm(st.pose_marker[:3, 3] - truth(st.index)[:3, 3]) < 0.003, st.index
+
+
 def _three_circles_first(monkeypatch, n_frames: int) -> None:
     """Make the geometry pass's marker detection hide the leftmost of four circles in frames
     ``0 .. n_frames - 1`` (a pass that starts with three circles in view)."""

@@ -174,7 +174,8 @@ def test_marker_tracker_running_mean():
 def test_three_circles_numbered_by_the_key_start_the_tracker():
     """With a key circle, any three circles, detected in any order, start the tracker: they are
     numbered by the key (or by its absence), the fourth centre is put at the square's missing corner
-    and flagged as inferred until a detection of it replaces it. Without a key circle, with
+    and flagged as inferred until a detection of it replaces it (a refit puts it again from the other
+    three). Without a key circle, with
     ``from_three`` off, with a radius between the key's and a plain circle's, or with a triangle that
     is not three corners of the square, they do not."""
     from dataclasses import replace
@@ -198,6 +199,11 @@ def test_three_circles_numbered_by_the_key_start_the_tracker():
         assert tr.inferred.tolist() == [i == m for i in range(4)] and tr.counts[m] == 0
         assert np.linalg.norm(tr.centers - truth, axis=1).max() < 2e-3
         assert np.allclose(tr.marker_to_world(), world, atol=3e-3)
+        # refitted from the same three at poses 2 mm off: the inferred corner follows the other three
+        before = tr.centers.copy()
+        assert tr.refit([(det, make_pose(np.eye(3), [0.002, 0, 0]) @ pose)])
+        assert tr.inferred[m] and np.allclose(tr.centers, before + [0.002, 0, 0], atol=1e-12)
+        assert not MarkerTracker(cfg).refit([(det, pose)])                 # nothing to match to yet
         full = MarkerDetection(transform_points(Ci, truth), radii, np.zeros((4, 2)), normal, 0.0, True, "ir")
         assert tr.update(full, pose).tolist() == [0, 1, 2, 3]
         assert not tr.inferred.any() and tr.counts[m] == 1
