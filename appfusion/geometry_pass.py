@@ -600,7 +600,8 @@ class GeometryPass:
     def marker_to_world(self) -> np.ndarray:
         """Marker frame -> fusion world (first camera); raises until the markers have been seen."""
         if not self.tracker.initialised:
-            raise EstimationError("geometry pass: no frame has shown all four white circles yet")
+            raise EstimationError("geometry pass: no marker frame yet (no frame has shown all four white circles, "
+                                  "or three with the key circle)")
         return self.tracker.marker_to_world()
 
     def fused_mesh(self) -> o3d.geometry.TriangleMesh:
@@ -741,8 +742,10 @@ class GeometryPass:
             box = self.box
         elif require_markers:
             raise EstimationError(
-                f"geometry pass: the four white circles were never seen together in {len(self.states)} "
-                f"frame{'s' if len(self.states) != 1 else ''} "
+                f"geometry pass: the four white circles were never seen together"
+                + (" (nor three of them with the key circle)"
+                   if self.marker_config.key_radius_m and self.config.three_circle_numbers else "")
+                + f" in {len(self.states)} frame{'s' if len(self.states) != 1 else ''} "
                 f"(radius {self.marker_config.radius_m * 1e3:.0f} mm"
                 + ("" if self.marker_config.side_m is None else f", square side {self.marker_config.side_m * 1e3:.0f} mm")
                 + "), so there is no marker frame and no object box; check the markers are in view and the "

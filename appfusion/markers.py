@@ -884,7 +884,7 @@ class MarkerTracker:
     def centers(self) -> np.ndarray:
         """(4, 3) fused centres 1..4 in the world frame."""
         if not self.initialised:
-            raise EstimationError("markers: no frame has shown all four circles yet")
+            raise EstimationError("markers: no frame has shown all four circles (or three numbered by the key circle) yet")
         return self.sums / self.weights[:, None]
 
     def update(self, det: MarkerDetection, pose: np.ndarray) -> np.ndarray:

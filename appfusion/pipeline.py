@@ -961,8 +961,8 @@ class ScanRunner:
             self._note(f"geometry: tracking lost in {lost} frames (not fused; the scan resumed when the view returned)")
         rejected = self.geometry.gp.backfill_rejected
         if rejected:
-            self._note(f"geometry: {rejected} frames tracked before all four circles were in view left out: their "
-                       "circles did not confirm the tracked pose")
+            self._note(f"geometry: {rejected} frames tracked before the circles defined the marker frame left out: "
+                       "their circles did not confirm the tracked pose")
         if cfg.refuse_geometry:
             rounds = int(cfg.refuse_rounds)
             t0 = time.perf_counter()
