@@ -352,11 +352,12 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     from appfusion.errors import EstimationError
     import appfusion.pipeline as P
 
-    for scene in ("two-material", "matte"):
-        session = tmp_path / "sessions" / S.session_name(scene, 40, (320, 240), 0, "test", "test")
+    for scene, frames, seed in (("two-material", 40, 0), ("matte", 40, 0), ("sphere", 12, 1)):
+        session = tmp_path / "sessions" / S.session_name(scene, frames, (320, 240), seed, "test", "test")
         (session / "truth").mkdir(parents=True)
         (session / "truth" / "scene.json").write_text(json.dumps({"ball": {"radius_m": 0.035}}))
     seen = []
+    monkeypatch.setattr(S, "fast_sweep", lambda session: {"tracked": 0.75, "frames": [], "seconds": 0.1})
 
     def fake_run_scan(sess, out, config, envmap=None, progress=False, log=print):
         seen.append(config.ball_radius_m)
@@ -376,6 +377,7 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     assert got["relit_rel_rmse"] == 0.25 and got["scan_ate_mm"] == 1.5 and got["scan_label_accuracy"] == 0.9
     assert got["scan_envmap_median_rel_err"] is None and got["scan_rho_s_rel_err"] is None   # NaN / missing
     assert got["demo_scan_s"] >= 0.05 and set(got) <= set(METRICS)
+    assert got["fast_sweep_tracked"] == 0.75 and ctx.extra["scan"]["fast_sweep"]["session"]["frames"] == 12
     assert got["skip_wavelet_saving"] is None                     # no result.npz from the stand-in
     e = ctx.extra["scan"]
     assert e["fallback"]["ball_radius_m"] == 0.035 and "sphere fit" in e["fallback"]["error"]
@@ -427,6 +429,7 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
                                               "detail": "test", "quality": "test"})
     monkeypatch.setattr(S, "QUICK_POINTS", 2000)
     monkeypatch.setattr(S, "QUICK_TEXTURE", 64)
+    monkeypatch.setattr(S, "FAST_SWEEP_SESSION", {**S.FAST_SWEEP_SESSION, "frames": 8})
     ctx = BenchContext(workdir=tmp_path, quick=True, stage="scan", log=lambda s: None)
     t0 = time.perf_counter()
     got = S.run(ctx)
@@ -436,7 +439,10 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     print(f"scan stage {time.perf_counter() - t0:.1f} s, of which the scan {ctx.extra['scan']['wall_s']:.1f} s")
     assert ctx.extra["scan"]["wall_s"] < 150                  # a regression guard (5x), not a timing
     assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
-                        "scan_ir_pattern_heldout_cv", *S.SCAN_METRICS.values(), *S.MATTE_METRICS.values()}
+                        "scan_ir_pattern_heldout_cv", "fast_sweep_tracked", *S.SCAN_METRICS.values(),
+                        *S.MATTE_METRICS.values()}
+    fast = ctx.extra["scan"]["fast_sweep"]
+    assert len(fast["frames"]) == 8 and 0 < got["fast_sweep_tracked"] <= 1
     # the matte scene (no lobe) is scanned too: its rho_s over its area, rho_d and relit error
     mt = ctx.extra["scan"]["matte"]
     print(f"matte scan {mt['wall_s']:.1f} s: model {mt['model']}, rho_s {got['scan_matte_rho_s']}, "
