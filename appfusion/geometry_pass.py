@@ -115,18 +115,24 @@ class GeometryConfig:
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion, in its voxels (None, the default: tracking's
         ``FusionConfig.trunc_voxels``, 4, or ``refuse_fine_trunc_voxels`` where the object curves
-        tightly, if given). A ray that hits an overhanging edge (a lid's rim seen from above) writes "behind
+        tightly). A ray that hits an overhanging edge (a lid's rim seen from above) writes "behind
         the surface" into the free space under the edge for a truncation's length along the ray, and
         the views that see that space are few: the vase's neck bulged out 1.5-2.4 mm over the 10 mm
         below its lid at 4 voxels, 0.15-0.4 mm at 2 (session 17). 2 everywhere is not the default:
         seed 3's relit error rose 0.057 -> 0.066 (docs/geometry-pass.md).
     refuse_fine_trunc_voxels : float or None
         The re-fusion's truncation where ``refuse_fine_scale`` applies (the object curves tightly;
-        never on the capsules), unless ``refuse_trunc_voxels`` is given (session 26; None, the
-        default: 4). At 2, with the planar faces snapped (``plane_snap``), the vase's relit 0.138 ->
-        0.113 and its neck's normals 2-6 mm below the lid 10-18 -> 2.5-3.6 degrees; the pepper 0.215
-        -> 0.200. Not the default: on sessions of a few noisy frames the fine re-fusion triggers on
-        the noise, and at 2 voxels a 12-frame sphere's alpha read 0.180 for 0.12 (0.12 +- 35 % at 4).
+        never on the capsules) and at least ``refuse_fine_trunc_min_frames`` frames are re-fused,
+        unless ``refuse_trunc_voxels`` is given (session 26; default 2 since session 30; None:
+        tracking's 4). At 2 the vase's neck no longer bulges below its lid (its normals 2-6 mm below
+        the lid 10-18 -> 2.5-3.6 degrees). Session 30, 200 frames a pass, 4 -> 2 voxels: vase relit
+        0.134 -> 0.115, pepper 0.200 -> 0.197 and its rho_d 3.06 -> 2.87 %.
+    refuse_fine_trunc_min_frames : int
+        Frames the re-fusion must integrate for ``refuse_fine_trunc_voxels`` to apply (default 60):
+        a TSDF truncated at 2 voxels averages each voxel over fewer depth samples, and a few noisy
+        frames are also what makes the fine re-fusion trigger on noise: the tests' 12-frame Kinect
+        sphere (3.0 % of the first mesh of a 7 cm sphere "curves tightly") read its IR alpha 0.180
+        for 0.12 at 2 voxels.
     min_component : float
         Connected mesh pieces inside the box with fewer triangles than this fraction of the largest
         are dropped (flying fragments).
@@ -161,7 +167,8 @@ class GeometryConfig:
     refuse_fine_radius_voxels: float = 6.5
     refuse_fine_fraction: float = 0.01
     refuse_trunc_voxels: float | None = None
-    refuse_fine_trunc_voxels: float | None = None
+    refuse_fine_trunc_voxels: float | None = 2.0
+    refuse_fine_trunc_min_frames: int = 60
     min_component: float = 0.02
     hole_radius: float = 0.01
     seed: int = 0
@@ -681,7 +688,7 @@ class GeometryPass:
             # scaled from tracking's voxel, also in a second round (whose volume is already scaled)
             fc = replace(fc, voxel_size=self._tracking_voxel * self.refuse_scale)
         trunc = self.config.refuse_trunc_voxels
-        if trunc is None and self.fine_triggered:
+        if trunc is None and self.fine_triggered and len(by_index) >= self.config.refuse_fine_trunc_min_frames:
             trunc = self.config.refuse_fine_trunc_voxels
         if trunc is not None:
             fc = replace(fc, trunc_voxels=float(trunc))

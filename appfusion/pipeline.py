@@ -61,8 +61,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: the frames' own circles confirm them; 31: tracking normals' discontinuity threshold grows with depth;
 #: 32: a complete keyed detection pairs its circles by number, tracking starts from the circles' pose
 #: where it lies beyond the jump limit from the prediction; 33: three circles numbered by the key
-#: circle start the marker frame and pair by number)
-CHECKPOINT_VERSION = 33
+#: circle start the marker frame and pair by number; 34: the fine re-fusion truncates at 2 voxels by
+#: default, from 60 frames on)
+CHECKPOINT_VERSION = 34
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -179,17 +180,21 @@ class ScanConfig:
         first mesh's vertices curve tighter than 6.5 voxels (pepper 2.2 %, vase 2.8 %, the capsules
         none), the re-fusion runs at this fraction of tracking's voxel (2/3: 2 mm for 3). None: never.
     refuse_fine_trunc_voxels : float or None
-        The re-fusion's truncation where the object curves tightly (``refuse_fine_scale`` applies),
-        unless ``refuse_trunc_voxels`` is given (session 26; ``GeometryConfig``; None, the default:
-        4). 2 removes the vase's neck bulge below its lid: vase relit 0.138 -> 0.113, pepper 0.215 ->
-        0.200; but on a few noisy frames the trigger fires on noise and a 12-frame sphere's alpha read
-        0.180 for 0.12, so it is not the default.
+        The re-fusion's truncation where the object curves tightly (``refuse_fine_scale`` applies) and
+        at least ``refuse_fine_trunc_min_frames`` frames are re-fused, unless ``refuse_trunc_voxels``
+        is given (session 26; ``GeometryConfig``; default 2 since session 30; None: 4). 2 removes the
+        vase's neck bulge below its lid; 200 frames a pass, 4 -> 2: vase relit 0.134 -> 0.115, pepper
+        0.200 -> 0.197 (rho_d 3.06 -> 2.87 %).
+    refuse_fine_trunc_min_frames : int
+        Frames re-fused below which the fine truncation is not applied (default 60): on a few noisy
+        frames the fine re-fusion triggers on the noise, and a 12-frame sphere's alpha read 0.180 for
+        0.12 at 2 voxels.
     refuse_trunc_voxels : float or None
         Truncation of that re-fusion in voxels (session 17; :class:`appfusion.geometry_pass.GeometryConfig`);
-        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` (if given) where the object
-        curves tightly. A ray that hits an overhanging edge writes "behind the surface" into the free
-        space under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm
-        below its lid at 4 voxels, 0.15-0.4 mm at 2. Relit at 4 / 3 / 2 voxels (one run each):
+        None (default): tracking's 4, or ``refuse_fine_trunc_voxels`` where the object curves
+        tightly. A ray that hits an overhanging edge writes "behind the surface" into the free space
+        under it for a truncation's length: the vase's neck bulged 1.5-2.4 mm below its lid at 4
+        voxels, 0.15-0.4 mm at 2. Relit at 4 / 3 / 2 voxels (one run each):
         demo 0.0387 / 0.0384 / 0.0352, seed 3 0.057 / 0.058 / 0.066, vase (creases sharpened) 0.162 /
         0.183 / 0.145; so not the default (docs/geometry-pass.md).
     crease_radius_voxels : float or None
@@ -271,7 +276,8 @@ class ScanConfig:
     refuse_voxel_scale: float = 1.0
     refuse_fine_scale: float | None = 2.0 / 3.0
     refuse_trunc_voxels: float | None = None
-    refuse_fine_trunc_voxels: float | None = None
+    refuse_fine_trunc_voxels: float | None = 2.0
+    refuse_fine_trunc_min_frames: int = 60
     crease_radius_voxels: float | None = 2.5
     plane_snap: bool = True
     normal_refine_rounds: int = 0
@@ -525,6 +531,9 @@ class ScanRunner:
                                  f"{c.rho_d_pool_z!r}")
         if c.rgb_sampling not in ("nearest", "bilinear"):
             raise AppFusionError(f"scan config: rgb_sampling must be 'nearest' or 'bilinear', got {c.rgb_sampling!r}")
+        if not (isinstance(c.refuse_fine_trunc_min_frames, (int, np.integer)) and c.refuse_fine_trunc_min_frames >= 0):
+            raise AppFusionError("scan config: refuse_fine_trunc_min_frames must be an integer >= 0, got "
+                                 f"{c.refuse_fine_trunc_min_frames!r}")
         for name in ("refuse_trunc_voxels", "refuse_fine_trunc_voxels", "crease_radius_voxels"):
             v = getattr(c, name)
             if v is not None and not (np.isfinite(float(v)) and 1.0 <= float(v) <= 8.0):
@@ -2048,6 +2057,7 @@ class _Geometry:
                               refuse_fine_scale=config.refuse_fine_scale,
                               refuse_trunc_voxels=config.refuse_trunc_voxels,
                               refuse_fine_trunc_voxels=config.refuse_fine_trunc_voxels,
+                              refuse_fine_trunc_min_frames=int(config.refuse_fine_trunc_min_frames),
                               crease_radius_voxels=config.crease_radius_voxels,
                               plane_snap=bool(config.plane_snap))
         fc = {} if surface else {"surface_max_incidence_deg": None}

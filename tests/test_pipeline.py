@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from appfusion.errors import AppFusionError
 from appfusion.pipeline import CHECKPOINT_VERSION, ScanConfig, ScanRunner
 from replay.session import SessionReader
 
@@ -320,26 +321,33 @@ def test_a_cluster_whose_ir_lobe_runs_to_the_roughness_bound_is_diffuse(kinect_s
 
 
 def test_the_fine_refusion_truncates_at_two_voxels_where_the_object_curves_tightly(kinect_sphere, tmp_path, monkeypatch):
-    """With refuse_fine_trunc_voxels (2; not the default), where the first mesh curves tightly (the
-    fine re-fusion's trigger, which never fires on the capsules) the re-fusion also truncates at 2
-    voxels: a lid's rim no longer writes 'behind the surface' 8 mm into the free space under it (the
-    vase's neck bulge, session 26). Elsewhere the truncation stays tracking's 4; refuse_trunc_voxels,
-    when given, wins; by default it stays 4 everywhere."""
+    """Where the first mesh curves tightly (the fine re-fusion's trigger, which never fires on the
+    capsules) and enough frames are re-fused (``refuse_fine_trunc_min_frames``, 60), the re-fusion
+    also truncates at ``refuse_fine_trunc_voxels`` (2 by default since session 30): a lid's rim no
+    longer writes 'behind the surface' 8 mm into the free space under it (the vase's neck bulge,
+    session 26). With fewer frames (this session re-fuses 11), elsewhere, or with
+    ``refuse_trunc_voxels`` given, the truncation is tracking's 4 or the given one."""
     import appfusion.geometry_pass as G
 
     monkeypatch.setattr(G, "tight_curvature_fraction", lambda mesh, radius, k=32: 0.0)    # a capsule
-    r, _ = _run(kinect_sphere, tmp_path / "smooth", stop_at="ir", refuse_fine_trunc_voxels=2)
+    r, _ = _run(kinect_sphere, tmp_path / "smooth", stop_at="ir", refuse_fine_trunc_min_frames=0)
     assert not r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4
     monkeypatch.setattr(G, "tight_curvature_fraction", lambda mesh, radius, k=32: 0.05)   # a tight rim
     r, _ = _run(kinect_sphere, tmp_path / "default", stop_at="ir")
-    assert r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4
-    r, _ = _run(kinect_sphere, tmp_path / "tight", stop_at="ir", refuse_fine_trunc_voxels=2)
+    assert r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4    # 11 frames < 60
+    assert any("truncation 4 voxels" in m for m in r.messages), r.messages
+    r, _ = _run(kinect_sphere, tmp_path / "tight", stop_at="ir", refuse_fine_trunc_min_frames=10)
     gp = r.geometry.gp
     assert gp.fine_triggered and gp.fusion.config.trunc_voxels == 2
     assert abs(gp.fusion.config.voxel_size - gp._tracking_voxel * 2 / 3) < 1e-9
     assert any("truncation 2 voxels" in m for m in r.messages), r.messages
-    r, _ = _run(kinect_sphere, tmp_path / "given", stop_at="ir", refuse_trunc_voxels=3, refuse_fine_trunc_voxels=2)
+    r, _ = _run(kinect_sphere, tmp_path / "off", stop_at="ir", refuse_fine_trunc_min_frames=10,
+                refuse_fine_trunc_voxels=None)
+    assert r.geometry.gp.fine_triggered and r.geometry.gp.fusion.config.trunc_voxels == 4
+    r, _ = _run(kinect_sphere, tmp_path / "given", stop_at="ir", refuse_trunc_voxels=3, refuse_fine_trunc_min_frames=0)
     assert r.geometry.gp.fusion.config.trunc_voxels == 3
+    with pytest.raises(AppFusionError, match="refuse_fine_trunc_min_frames"):
+        _run(kinect_sphere, tmp_path / "bad", refuse_fine_trunc_min_frames=-1)
 
 
 @pytest.mark.slow
