@@ -208,6 +208,43 @@ def kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return T
 
 
+def anchor_pose(anchors) -> np.ndarray | None:
+    """Camera-to-world pose fixed by tracking anchors, or None.
+
+    Three or more anchors: their rigid fit (:func:`kabsch`). Two, with the support plane's normal in
+    both frames (``anchors[2]`` world, ``anchors[3]`` camera): the rotation that takes the camera
+    normal to the world one and the line between the two points (projected on the plane) to theirs,
+    the translation that matches their midpoints (beyond the paper; two circles numbered by the key
+    circle, :meth:`appfusion.markers.MarkerTracker.number_two`).
+    """
+    if anchors is None:
+        return None
+    src, dst = np.asarray(anchors[0], float).reshape(-1, 3), np.asarray(anchors[1], float).reshape(-1, 3)
+    if len(src) >= 3:
+        return kabsch(src, dst)
+    if len(src) != 2 or len(anchors) < 4 or anchors[2] is None or anchors[3] is None:
+        return None
+    nw = np.asarray(anchors[2], float).reshape(-1, 3)[0]
+    nc = np.asarray(anchors[3], float).reshape(3)
+
+    def basis(P, n):
+        n = n / np.linalg.norm(n)
+        u = P[1] - P[0]
+        u = u - (u @ n) * n
+        if not np.linalg.norm(u) > 1e-6:
+            return None
+        u /= np.linalg.norm(u)
+        return np.stack([u, np.cross(n, u), n], 1)
+
+    Bc, Bw = basis(src, nc), basis(dst, nw)
+    if Bc is None or Bw is None:
+        return None
+    T = np.eye(4)
+    T[:3, :3] = Bw @ Bc.T
+    T[:3, 3] = dst.mean(0) - T[:3, :3] @ src.mean(0)
+    return T
+
+
 def _twist_to_pose(xi: np.ndarray) -> np.ndarray:
     """4x4 rigid transform of a twist (omega (3,), tau (3,)): Rodrigues rotation, translation tau."""
     w, t = xi[:3], xi[3:]
@@ -1030,11 +1067,12 @@ class TSDFFusion:
         ----------
         depth : (H, W) float array
             Depth in metres (NaN or 0 invalid) of the size of ``intrinsics``.
-        anchors : (cam_pts (K, 3), world_pts (K, 3)[, world normal (3,) or (K, 3)]), optional
+        anchors : (cam_pts (K, 3), world_pts (K, 3)[, world normal (3,) or (K, 3)[, camera normal (3,)]]), optional
             Points of this frame (depth camera frame) whose world positions are known, e.g. the
-            marker centres: they join the ICP as point-to-point terms, and with three or more a
-            lost frame is relocalised from their rigid fit instead of the last good pose. With a
-            normal (the support plane's) their error along it weighs ``anchor_normal_weight``.
+            marker centres: they join the ICP as point-to-point terms, and with three or more (or
+            two and the plane's normal in both frames, :func:`anchor_pose`) a lost frame is
+            relocalised from their pose instead of the last good pose. With a normal (the support
+            plane's) their error along it weighs ``anchor_normal_weight``.
 
         Returns
         -------
@@ -1080,14 +1118,15 @@ class TSDFFusion:
         # with keyframes on, track against the (cached) ray cast at the last integrated frame
         ref = self._key_pose if (self._keyframes and not relocalising and self._key_pose is not None) else prev
         far_ref = False
-        if anchors is not None and len(anchors[0]) >= 3 and relocalising:
+        if relocalising and (fixed := anchor_pose(anchors)) is not None:
             # relocalise from the anchors' rigid fit, against the model seen from there
-            pred = kabsch(anchors[0], anchors[1])
+            pred = fixed
             ref, far_ref = orthonormalize(pred), True
-        elif anchors is not None and len(anchors[0]) >= 3 and (
+        elif anchors is not None and len(anchors[0]) >= 2 and (
                 (far := self._anchor_pose_beyond_jump(anchors, pred)) is not None):
-            # three or more circles, paired by their numbering, fix a pose beyond the jump limit from the
-            # prediction (a sweep faster than tracking follows): start there, as a relocalisation does
+            # three or more circles, or two with the plane's normal, paired by their numbering, fix a pose
+            # beyond the jump limit from the prediction (a sweep faster than tracking follows): start
+            # there, as a relocalisation does
             pred, ref = far, far.copy()
             far_ref = relocalising = True
         pred = orthonormalize(pred)
@@ -1146,12 +1185,15 @@ class TSDFFusion:
         return res
 
     def _anchor_pose_beyond_jump(self, anchors, pred: np.ndarray) -> np.ndarray | None:
-        """The anchors' rigid fit (camera to world) where it fits the fused circles within
-        ``anchor_fit_tol_m`` RMS and lies beyond the jump limit from ``pred``; else None."""
+        """The anchors' pose (camera to world, :func:`anchor_pose`) where it fits the fused circles
+        within ``anchor_fit_tol_m`` RMS and lies beyond the jump limit from ``pred``; else None."""
         cfg = self.config
         if not cfg.anchor_fit_tol_m > 0:
             return None
-        T = orthonormalize(kabsch(anchors[0], anchors[1]))
+        T = anchor_pose(anchors)
+        if T is None:
+            return None
+        T = orthonormalize(T)
         r = transform_points(T, anchors[0]) - anchors[1]
         if np.sqrt(np.mean(np.sum(r * r, axis=1))) > cfg.anchor_fit_tol_m:
             return None

@@ -356,32 +356,38 @@ class GeometryPass:
         pairs = self._paired(det, pose)
         if pairs is None:
             return None
-        k, j = pairs
+        k, j, numbered = pairs
         measured = ~self.tracker.inferred[j]
         if not measured.any():
             return None
         # with the support plane's normal: a centre's error across the plane weighs more than within
         # it (FusionConfig.anchor_normal_weight)
-        return det.centers[k[measured]], self.tracker.centers[j[measured]], self.tracker.normal
+        out = det.centers[k[measured]], self.tracker.centers[j[measured]], self.tracker.normal
+        if numbered and measured.sum() == 2 and det.normal is not None and self.tracker.normal is not None:
+            # two numbered circles and the plane's normal in this frame fix the pose (fusion.anchor_pose);
+            # two paired by nearness do not (one side of the square fits any other)
+            out = out + (np.asarray(det.normal, float),)
+        return out
 
-    def _paired(self, det: MarkerDetection, pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
-        """(detections, fused circle numbers) of :meth:`_anchors`, or None."""
+    def _paired(self, det: MarkerDetection, pose: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, bool] | None:
+        """(detections, fused circle numbers, whether numbered by the key circle) of :meth:`_anchors`,
+        or None."""
         if not (self.config.use_anchors and self.tracker.initialised and det.n):
             return None
         C = self.tracker.centers
         every = np.arange(det.n)
         if self.marker_config.key_radius_m and det.complete and det.n == len(C):
-            return every, every
+            return every, every, True
         fu = self.fusion
         W = transform_points(fu.predicted_pose() if pose is None else pose, det.centers)
         dist = np.linalg.norm(W[:, None] - C[None], axis=2)
         j = dist.argmin(1)
-        if det.n == 3 and self.config.three_circle_numbers:
-            idx = self.tracker.number_three(det)
+        if det.n in (2, 3) and self.config.three_circle_numbers:
+            idx = self.tracker.number_three(det) if det.n == 3 else self.tracker.number_two(det)
             if idx is not None:
                 near = dist[every, j] < max(3 * self.marker_config.radius_m, 0.05)
-                if fu.lost or not near.all() or len(set(j)) < 3 or np.array_equal(j, idx):
-                    return every, idx
+                if fu.lost or not near.all() or len(set(j)) < det.n or np.array_equal(j, idx):
+                    return every, idx, True
         # while lost the prediction may be far off (the last good pose, a fast sweep's 20-30 degrees
         # away): match three or more circles by their shape, not by where the stale pose puts them
         if fu.lost and pose is None and 3 <= det.n <= len(C):
@@ -401,7 +407,7 @@ class GeometryPass:
                     keep[dup[dup != dup[np.argmin(dj[dup])]]] = False
         if keep.sum() == 0 or len(set(j[keep])) < keep.sum():
             return None
-        return every[keep], j[keep]
+        return every[keep], j[keep], False
 
     def _provisional_anchors(self, det: MarkerDetection) -> tuple[np.ndarray, np.ndarray] | None:
         """Anchors before the marker frame exists: each detected centre paired with the nearest circle
@@ -705,7 +711,7 @@ class GeometryPass:
                 det = st.detection                               # found while tracking the frame
                 a = self._anchors(det, st.pose) if det is not None and det.n else None
                 if a is not None and len(a[0]):
-                    c_cam, C_w, n_w = a
+                    c_cam, C_w, n_w = a[:3]
                     C_m = transform_points(W2M, C_w)
                     n_m = W2M[:3, :3] @ n_w if n_w is not None else None
                     anchors = (c_cam, C_m, n_m)

@@ -49,7 +49,7 @@ from .frame import REC709_LUMA, Frame, Intrinsics, invert_pose, transform_points
 
 __all__ = ["MarkerConfig", "Ellipse", "MarkerDetection", "MarkerTracker", "ObjectBox", "view_weight",
            "detect_circles", "fit_plane_ransac", "circle_on_plane", "refine_circle", "number_square", "number_three",
-           "key_mask", "marker_frame",
+           "number_two", "key_mask", "marker_frame",
            "detect_markers", "marker_config_from_meta"]
 
 
@@ -529,6 +529,44 @@ def key_mask(radii: np.ndarray, config: MarkerConfig, margin: float = 0.5) -> np
     return is_key
 
 
+def number_two(det: "MarkerDetection", config: MarkerConfig, side_m: float | None = None,
+               margin: float = 0.5) -> np.ndarray | None:
+    """Circle numbers (0-based) of two detected circles when the key circle alone fixes them, or None.
+
+    Only the key circle (circle 1) with the circle across the diagonal (circle 3) is unambiguous: any
+    other pair fits two or more places of the square (beyond the paper; with the support plane's
+    normal such a pair fixes the camera pose, :func:`appfusion.fusion.anchor_pose`).
+
+    Parameters
+    ----------
+    det : MarkerDetection
+        Two circles (``det.n == 2``).
+    config : MarkerConfig
+        Needs ``key_radius_m``.
+    side_m : float, optional
+        The square's side, metres (default ``config.side_m``); without either, the pair's distance is
+        not checked against the diagonal and None is returned.
+    margin : float
+        Radius bands of :func:`key_mask`.
+
+    Returns
+    -------
+    (2,) int array: 0 for the key circle and 2 for the other; or None.
+    """
+    if det.n != 2 or not config.key_radius_m:
+        return None
+    side = side_m or config.side_m
+    P = np.asarray(det.centers, float)
+    if not side or not np.all(np.isfinite(P)):
+        return None
+    if abs(float(np.linalg.norm(P[1] - P[0])) - side * np.sqrt(2)) > 0.015:
+        return None
+    is_key = key_mask(det.radii, config, margin)
+    if is_key is None or is_key.sum() != 1:
+        return None
+    return np.where(is_key, 0, 2).astype(np.int64)
+
+
 def number_three(det: "MarkerDetection", config: MarkerConfig, side_m: float | None = None,
                  margin: float = 0.5) -> np.ndarray | None:
     """Circle numbers (0-based) of three detected circles of the printed square, or None.
@@ -879,6 +917,12 @@ class MarkerTracker:
         once known, the fused one, and clear radii only), or None."""
         side = self.config.side_m or (self.side() if self.initialised else None)
         return number_three(det, self.config, side, self.THREE_RADIUS_MARGIN)
+
+    def number_two(self, det: MarkerDetection) -> np.ndarray | None:
+        """Circle numbers of a two-circle detection, the key circle and the one across the diagonal
+        (:func:`number_two`, clear radii only), or None."""
+        side = self.config.side_m or (self.side() if self.initialised else None)
+        return number_two(det, self.config, side, self.THREE_RADIUS_MARGIN)
 
     @property
     def centers(self) -> np.ndarray:

@@ -235,3 +235,33 @@ def test_three_circles_numbered_by_the_key_pair_by_number_through_a_stale_predic
     assert not np.array_equal(gp.tracker.number_three(misread), seen)
     src, dst, _ = gp._anchors(misread)
     assert np.allclose(dst, C[seen])
+
+
+def test_the_key_circle_and_the_one_across_the_diagonal_fix_the_pose_with_the_plane():
+    """Two circles: only the key circle with circle 3 is numbered (any other pair fits two or more
+    places of the square), and with the support plane's normal in both frames the two give the
+    camera pose (``fusion.anchor_pose``); the geometry pass passes that normal only for a numbered
+    pair, so that two circles paired by nearness never move tracking."""
+    from appfusion.frame import invert_pose, transform_points
+    from appfusion.fusion import anchor_pose, rotation_angle_deg
+    from appfusion.markers import MarkerDetection
+
+    true = _orbit_pose(40.0)
+    Ti = invert_pose(true)
+    normal = Ti[:3, :3] @ np.array([0, 0, 1.0])
+    rng = np.random.default_rng(3)
+    for keep in itertools.permutations(range(4), 2):
+        gp, C, cfg = _keyed_pass(_orbit_pose(10.0), lost=True)
+        cam = transform_points(Ti, C[list(keep)]) + rng.normal(0, 5e-4, (2, 3))
+        det = MarkerDetection(cam, cfg.radii()[list(keep)], np.zeros((2, 2)), normal, 0.0, False, "ir")
+        idx = gp.tracker.number_two(det)
+        a = gp._anchors(det)
+        if sorted(keep) == [0, 2]:
+            assert list(idx) == list(keep)
+            assert len(a) == 4 and np.allclose(a[1], C[list(keep)]) and np.allclose(a[3], normal)
+            T = anchor_pose(a)
+            assert np.linalg.norm(T[:3, 3] - true[:3, 3]) < 6e-3 and rotation_angle_deg(T[:3, :3].T @ true[:3, :3]) < 0.5
+        else:
+            assert idx is None and (a is None or len(a) == 3)
+    assert anchor_pose((cam, C[:2], None)) is None                     # two points without the normals
+    assert np.allclose(anchor_pose((C[:3], C[:3])), np.eye(4), atol=1e-9)   # three: their rigid fit

@@ -147,9 +147,9 @@ def test_live_scan_of_a_synthetic_kinect_switches_passes_by_frame_counts(live_ki
     radial = np.abs(np.linalg.norm(res.positions - np.array([0, 0, 0.07]), axis=1) - 0.07)
     assert len(res.positions) == SMALL["n_points"] and np.median(radial) < 0.002
     assert res.info["alpha_source"].startswith("ir pass") and res.info["rho_d_source"].startswith("rgb pass")
-    # 30 degrees of orbit a frame: with three circles numbered by the key circle, 11 of the 12 geometry
-    # frames track (within 3 mm of the truth after re-fusion) and the IR alpha reads 0.123. Before
-    # (session 30) 2 frames tracked and it read 0.177; from one frame, 0.1255
+    # 30 degrees of orbit a frame: with three circles, and the key circle with the one across the
+    # diagonal, numbered by the key circle, all 12 geometry frames track and the IR alpha reads 0.1199
+    # (0.123 from 11 frames). Before session 30, 2 frames tracked and it read 0.177; from one, 0.1255
     assert res.alpha[0] == pytest.approx(0.12, rel=0.1)
     assert np.all(res.rho_s.max(axis=1) > 0) and np.all(np.isfinite(res.rho_d))
     for f in ("object.glb", "report.html", "envmap.npz", "summary.txt", "state/ir_profile.json"):

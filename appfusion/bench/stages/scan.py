@@ -37,7 +37,8 @@ the synthetic scanner (``replay.synth``), and reports:
     The fraction of a fast sweep's geometry frames tracked within 1 cm and 1 degree of the truth
     (:data:`FAST_SWEEP_SESSION`: the tests' synthetic Kinect sphere, 12 frames a pass, 30 degrees of
     orbit a frame, 320 x 240; the geometry pass alone, :func:`fast_sweep`). Session 30: 0.17 with
-    three circles not numbered (the marker frame waited for four), 0.92 with them.
+    three circles not numbered (the marker frame waited for four), 0.92 with them, 1.0 with the key
+    circle and the one across the diagonal numbered too.
 ``skip_lighting_saving``
     "A reused environment map skips the lighting pass" (issue #11): the fraction of the scan's wall
     time saved when the environment map of an earlier scan on the same markers is given
