@@ -65,7 +65,9 @@ class GeometryConfig:
     three_circle_numbers : bool
         With a key circle, number three circles by it (:func:`appfusion.markers.number_three`): they
         start the marker frame before a frame shows all four, and they pair with the fused circles
-        by number rather than through the predicted pose (default; beyond the paper).
+        by number rather than through the predicted pose; so does the key circle with the one
+        across the diagonal (:func:`appfusion.markers.number_two`), which with the plane's normal
+        fixes a pose (default; beyond the paper).
     n_points : int
         Points sampled on the object's surface (paper: 100k).
     bilateral_sigma_s : float or None
@@ -351,8 +353,11 @@ class GeometryPass:
         (a 30-degree step of the prediction pairs no circle within the distance allowed); so do three
         circles numbered by the key (:meth:`MarkerTracker.number_three`) unless the prediction pairs
         all three otherwise (a misread radius turns the numbering by a quarter turn, which tracking
-        does not). A circle the tracker has only inferred (:attr:`MarkerTracker.inferred`) is no
-        anchor: its place is not a measurement."""
+        does not), and the key circle with the one across the diagonal
+        (:meth:`MarkerTracker.number_two`), whose anchors then carry a fourth element, the plane's
+        normal in this frame, with which the two fix the pose (:func:`appfusion.fusion.anchor_pose`).
+        A circle the tracker has only inferred (:attr:`MarkerTracker.inferred`) is no anchor: its
+        place is not a measurement."""
         pairs = self._paired(det, pose)
         if pairs is None:
             return None
