@@ -1975,7 +1975,7 @@ class _MarkerPose:
         twice as far and beyond it. On the demo session 30 of the RGB pass's 200 frames see two
         circles only.
         """
-        from .fusion import rotation_angle_deg
+        from .fusion import anchor_pose, rotation_angle_deg
 
         if det.n != 2 or det.normal is None:
             return None
@@ -1988,26 +1988,17 @@ class _MarkerPose:
         is_key = self._is_key(det)
         if is_key.all():
             return None
-        u = P[1] - P[0]
-        u -= (u @ n) * n
-        if np.linalg.norm(u) < 1e-6:
-            return None
-        u /= np.linalg.norm(u)
-        Bc = np.stack([u, np.cross(n, u), n], 1)
         z = np.array([0.0, 0.0, 1.0])
         poses = []
         for i, j in itertools.permutations(range(4), 2):
             if (i == 0) != bool(is_key[0]) or (j == 0) != bool(is_key[1]):
                 continue
-            v = self.layout[j] - self.layout[i]
-            if abs(float(np.linalg.norm(v)) - dist) > 0.015:
+            if abs(float(np.linalg.norm(self.layout[j] - self.layout[i])) - dist) > 0.015:
                 continue
-            v = np.array([v[0], v[1], 0.0]) / np.linalg.norm(v[:2])
-            R = np.stack([v, np.cross(z, v), z], 1) @ Bc.T
-            T = np.eye(4)
-            T[:3, :3] = R
-            T[:3, 3] = 0.5 * (self.layout[i] + self.layout[j]) - R @ P.mean(axis=0)
-            poses.append(T)
+            # the two centres and the plane's normal, in the camera and in the marker frame
+            T = anchor_pose((P, self.layout[[i, j]], z, n))
+            if T is not None:
+                poses.append(T)
         if len(poses) == 1 and is_key.any():
             return poses[0]
         if not poses or self.last is None:
