@@ -499,6 +499,12 @@ def number_square(centers: np.ndarray, normal: np.ndarray, x_hint: np.ndarray) -
     return order
 
 
+def _square_corner(P: np.ndarray, m: int) -> np.ndarray:
+    """Circle ``m``'s centre (0-based) where the square of the other three, numbered ``P`` (4, 3), puts
+    it: its neighbours' sum less the circle across from it."""
+    return P[(m - 1) % 4] + P[(m + 1) % 4] - P[(m + 2) % 4]
+
+
 def key_mask(radii: np.ndarray, config: MarkerConfig, margin: float = 0.5) -> np.ndarray | None:
     """Which measured radii are the key circle's (circle 1), or None where that is unclear.
 
@@ -959,7 +965,7 @@ class MarkerTracker:
             m = int(np.setdiff1d(np.arange(4), idx)[0])
             P = np.empty((4, 3))
             P[idx] = W
-            P[m] = P[(m - 1) % 4] + P[(m + 1) % 4] - P[(m + 2) % 4]   # the square's missing corner
+            P[m] = _square_corner(P, m)
             w4 = np.empty(4)
             w4[idx] = w
             w4[m] = w.min()
@@ -1052,7 +1058,7 @@ class MarkerTracker:
             m = int(np.flatnonzero(unseen)[0])
             P = sums / np.maximum(weights, 1e-300)[:, None]
             w = weights[[(m - 1) % 4, (m + 1) % 4, (m + 2) % 4]].min()
-            sums[m] = w * (P[(m - 1) % 4] + P[(m + 1) % 4] - P[(m + 2) % 4])
+            sums[m] = w * _square_corner(P, m)
             weights[m] = w
         self.sums, self.weights, self.counts, self.normal_sum = sums, weights, counts, nsum
         self.inferred[:] = unseen
