@@ -62,8 +62,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: 32: a complete keyed detection pairs its circles by number, tracking starts from the circles' pose
 #: where it lies beyond the jump limit from the prediction; 33: three circles numbered by the key
 #: circle start the marker frame and pair by number; 34: the fine re-fusion truncates at 2 voxels by
-#: default, from 60 frames on)
-CHECKPOINT_VERSION = 34
+#: default, from 60 frames on; 35: holes closed by boundary loop (clipped to a star, a web of rings,
+#: faired), no longer by VTK's filler)
+CHECKPOINT_VERSION = 35
 
 
 def _broad_lobe(alpha) -> np.ndarray:

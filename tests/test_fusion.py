@@ -476,8 +476,8 @@ def _boundary_loops(mesh):
 def test_fill_small_holes_closes_small_holes_only():
     """Paper §6 hole cleaning: a 5 cm sphere cut open at the bottom (a 3.5 cm rim, like an object on
     the plane) with two ~5 mm holes in its top: the small holes are closed, wound like the sphere, the
-    rim stays open."""
-    from appfusion.geometry_pass import fill_small_holes
+    patches faired onto the sphere's curvature, the rim stays open."""
+    from appfusion.geometry_pass import boundary_loops, fill_small_holes
 
     mesh = o3d.geometry.TriangleMesh.create_sphere(radius=0.05, resolution=60)
     V = np.asarray(mesh.vertices)
@@ -491,16 +491,22 @@ def test_fill_small_holes_closes_small_holes_only():
     mesh.remove_unreferenced_vertices()
     before = _boundary_loops(mesh)
     assert len(before) == 3 and before[-1][1] > 0.03 and before[1][1] < 0.008
+    assert sorted(len(lp) for lp in boundary_loops(np.asarray(mesh.triangles))) == sorted(b[0] for b in before)
     out = fill_small_holes(mesh, 0.01)
     after = _boundary_loops(out)
     assert len(after) == 1 and after[0][1] > 0.03                  # only the rim is left open
     assert len(out.triangles) > len(mesh.triangles)
-    # nothing moved: every vertex of the result is one of the input's
-    from scipy.spatial import cKDTree
-    d, _ = cKDTree(np.asarray(mesh.vertices)).query(np.asarray(out.vertices))
-    assert d.max() < 1e-6                                           # (float32 round trip)
+    # the input comes first, unchanged; the new vertices lie on the sphere (faired: within 0.1 mm,
+    # the straight web to the holes' means up to 0.18 mm inside it)
+    n0 = len(mesh.vertices)
+    assert np.array_equal(np.asarray(out.vertices)[:n0], np.asarray(mesh.vertices))
+    assert np.array_equal(np.asarray(out.triangles)[:len(mesh.triangles)], np.asarray(mesh.triangles))
+    r_new = np.linalg.norm(np.asarray(out.vertices)[n0:], axis=1)
+    assert len(r_new) > 10 and np.abs(r_new - 0.05).max() < 1e-4
+    r_web = np.linalg.norm(np.asarray(fill_small_holes(mesh, 0.01, fair=False).vertices)[n0:], axis=1)
+    assert np.abs(r_web - 0.05).mean() > 3 * np.abs(r_new - 0.05).mean()
     # the patches are wound like the sphere around them: no edge run twice the same way, every
-    # triangle facing out (VTK's filler had wound 45 of them inwards)
+    # triangle facing out (VTK's filler, used before, had wound 45 of them inwards)
     Fo = np.asarray(out.triangles).astype(np.int64)
     Vo = np.asarray(out.vertices)
     E = np.concatenate([Fo[:, [0, 1]], Fo[:, [1, 2]], Fo[:, [2, 0]]])
@@ -509,6 +515,21 @@ def test_fill_small_holes_closes_small_holes_only():
     assert (np.einsum("ij,ij->i", fn, Vo[Fo].mean(axis=1)) > 0).all()
     assert fill_small_holes(mesh, 0.0) is mesh                     # switched off
     assert len(_boundary_loops(fill_small_holes(mesh, 0.002))) == 3   # holes above the radius stay
+    assert boundary_loops(np.zeros((0, 3), np.int64)) == []
+
+
+def test_boundary_loops_follow_the_triangles_and_split_at_a_shared_vertex():
+    """Two squares of two triangles each, touching at one corner: two loops of four, each run the way
+    its triangles run their edges, the shared corner in both."""
+    from appfusion.geometry_pass import boundary_loops
+
+    F = np.array([[0, 1, 2], [0, 2, 3], [2, 4, 5], [2, 5, 6]])
+    loops = boundary_loops(F)
+    assert sorted(len(lp) for lp in loops) == [4, 4]
+    assert all(2 in lp for lp in loops)
+    directed = {tuple(e) for f in F for e in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0]))}
+    for lp in loops:
+        assert all((int(a), int(b)) in directed for a, b in zip(lp, np.roll(lp, -1)))
 
 
 def _mesh_depth(V, F, K, eye, target):
