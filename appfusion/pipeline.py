@@ -1443,20 +1443,25 @@ class ScanRunner:
         mostly along the seam, where the first sweep's split had put paint into the label's cluster.
         The label's lobe (Ward 0.35, 5 % above its diffuse level in the IR) is the one they bias:
         fitted to the split's clusters seed 1 gave 0.332 (-5.1 %), to the final ones 0.346. Every
-        cluster takes its new fit. A cluster whose colour model is Ward had its rho_s measured with the
-        double products of the swept alpha: if that alpha moved by more than 1 %, the RGB frames are
-        swept a third time with the new one (the caller; no reassignment). A diffuse cluster has no S
-        in its sums and needs none.
+        cluster takes its new fit. A cluster whose S was in the sweep's sums (Ward, or made diffuse by
+        the model ladder) had its rho_s measured, and the ladder's choice made, with the double
+        products of the swept alpha: if that alpha moved by more than 1 %, the RGB frames are swept a
+        third time with the new one (the caller; no reassignment). The 40-frame bench scan's label
+        was swept at 0.067 (the split's cluster fitted in IR) and refitted to 0.317: the ladder had
+        judged a lobe five times too narrow (session 31). A cluster without S in its sums (no lobe in
+        IR) needs none.
         """
         if self.ir is None:                                  # reused IR checkpoint: _refit_ir said so already
             return alpha, sigma, False
         new, new_sigma = self._refit_ir(labels, alpha, sigma, what="the final clusters")
         alpha, sigma = alpha.copy(), sigma.copy()
+        measured = np.asarray(getattr(getattr(self, "rgb", None), "specular", np.zeros(0, bool)), bool)
         again = []
         for c in range(min(len(alpha), len(new))):
             if new[c] == alpha[c]:
                 continue
-            if c < len(model) and model[c] == "ward" and abs(new[c] / alpha[c] - 1.0) > 0.01:
+            swept = c < len(model) and (model[c] == "ward" or (c < len(measured) and measured[c]))
+            if swept and abs(new[c] / alpha[c] - 1.0) > 0.01:
                 again.append(f"cluster {c} {alpha[c]:.3f} -> {new[c]:.3f}")
             alpha[c], sigma[c] = new[c], new_sigma[c]
         if again:

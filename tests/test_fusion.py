@@ -515,6 +515,9 @@ def test_fill_small_holes_closes_small_holes_only():
     assert (np.einsum("ij,ij->i", fn, Vo[Fo].mean(axis=1)) > 0).all()
     assert fill_small_holes(mesh, 0.0) is mesh                     # switched off
     assert len(_boundary_loops(fill_small_holes(mesh, 0.002))) == 3   # holes above the radius stay
+    assert len(_boundary_loops(fill_small_holes(mesh, 0.1))) == 0     # the rim too, at 10 cm ...
+    kept = _boundary_loops(fill_small_holes(mesh, 0.1, keep_open_below=-0.03))
+    assert len(kept) == 1 and kept[0][1] > 0.03                    # ... unless it reaches the floor
     assert boundary_loops(np.zeros((0, 3), np.int64)) == []
 
 

@@ -218,8 +218,9 @@ def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_p
 
 def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_moved():
     """After the second sweep moved points between clusters, the IR lobes are fitted once more: every
-    cluster takes its new alpha; a Ward cluster whose alpha moved by more than 1 % (its rho_s was
-    measured with the old one) asks for a third sweep. Nothing happens without the IR pass's buffers."""
+    cluster takes its new alpha; a cluster whose S was in the sums (Ward, or made diffuse by the model
+    ladder) and whose alpha moved by more than 1 % (its rho_s was measured, and the ladder chose, with
+    the old one) asks for a third sweep. Nothing happens without the IR pass's buffers."""
     r = ScanRunner.__new__(ScanRunner)
     notes = []
     r._note = notes.append
@@ -244,6 +245,20 @@ def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_mo
     a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
     assert again is True and a[2] == np.float32(0.230)
     assert len(notes) == 1 and "cluster 2 0.200 -> 0.230" in notes[0]
+    # a cluster the model ladder made diffuse was judged with the S of its old lobe: it moved by 4.8 %,
+    # so it too asks for a sweep (session 31: the bench scan's label, swept at 0.067, refitted 0.317) ...
+    from types import SimpleNamespace
+
+    new[0] = np.array([0.0603, 0.346, 0.200], np.float32)
+    r.rgb = SimpleNamespace(specular=np.array([True, True, True]))
+    notes.clear()
+    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    assert again is True and len(notes) == 1 and "cluster 1 0.330 -> 0.346" in notes[0]
+    # ... but not one without S in its sums (no lobe in IR)
+    r.rgb = SimpleNamespace(specular=np.array([True, False, True]))
+    notes.clear()
+    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    assert again is False and not notes
 
 
 def test_geometry_poses_passed_on_are_only_those_of_tracked_frames():
