@@ -63,8 +63,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: where it lies beyond the jump limit from the prediction; 33: three circles numbered by the key
 #: circle start the marker frame and pair by number; 34: the fine re-fusion truncates at 2 voxels by
 #: default, from 60 frames on; 35: holes closed by boundary loop (clipped to a star, a web of rings,
-#: faired), no longer by VTK's filler)
-CHECKPOINT_VERSION = 35
+#: faired), no longer by VTK's filler; 36: specular normal refinement by default where the fine
+#: re-fusion fired, moved points keep their rho_d)
+CHECKPOINT_VERSION = 36
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -206,10 +207,15 @@ class ScanConfig:
         (:func:`appfusion.points.snap_planes`; session 26): the vase's lid drooped at its rim and its
         normals tilted 4-11 degrees there; relit 0.157 -> 0.138 in a full scan
         (docs/geometry-pass.md). No face is found on the capsules, the sphere or the pepper.
-    normal_refine_rounds : int
+    normal_refine_rounds : int or None
         Sweeps of specular normal refinement after the RGB pass (:mod:`appfusion.normal_refine`;
         beyond the paper): each glossy point's normal moves to the candidate whose highlights fit its
-        RGB samples significantly better, the candidates' tilt halved each round. 0: off.
+        RGB samples significantly better, the candidates' tilt halved each round. 0: off. None
+        (default): 3 where the geometry pass's fine re-fusion fired (the object curves tighter than
+        its voxel: the pepper's dimple, the vase's rim) over at least ``refuse_fine_trunc_min_frames``
+        frames, else 0 (the capsules, the sphere: their TSDF normals are right to 0.1 degrees and the
+        refinement tilted them; docs/rgb-pass.md §5f). Session 31, fresh 200-frame scans: pepper
+        relit 0.197 -> 0.129, rho_d 2.88 % either way; vase relit 0.134, unchanged.
     normal_refine_deg : float
         Largest tilt of the first round's candidates, degrees (rings at this and at half of it).
     normal_refine_screen : float or None
@@ -281,7 +287,7 @@ class ScanConfig:
     refuse_fine_trunc_min_frames: int = 60
     crease_radius_voxels: float | None = 2.5
     plane_snap: bool = True
-    normal_refine_rounds: int = 0
+    normal_refine_rounds: int | None = None
     normal_refine_deg: float = 3.0
     normal_refine_screen: float | None = None
     normal_refine_min_gain: float = 0.0
@@ -539,10 +545,11 @@ class ScanRunner:
             v = getattr(c, name)
             if v is not None and not (np.isfinite(float(v)) and 1.0 <= float(v) <= 8.0):
                 raise AppFusionError(f"scan config: {name} must be None or in [1, 8] voxels, got {v}")
-        if not (int(c.normal_refine_rounds) >= 0 and 0 < float(c.normal_refine_deg) <= 20
+        if not ((c.normal_refine_rounds is None or int(c.normal_refine_rounds) >= 0)
+                and 0 < float(c.normal_refine_deg) <= 20
                 and 0 <= float(c.normal_refine_min_gain) < 1
                 and (c.normal_refine_screen is None or float(c.normal_refine_screen) > 0)):
-            raise AppFusionError(f"scan config: normal refinement needs rounds >= 0, 0 < deg <= 20, 0 <= min_gain < 1 "
+            raise AppFusionError(f"scan config: normal refinement needs rounds None or >= 0, 0 < deg <= 20, 0 <= min_gain < 1 "
                                  f"and screen None or > 0; got {c.normal_refine_rounds}, {c.normal_refine_deg}, "
                                  f"{c.normal_refine_min_gain}, {c.normal_refine_screen}")
         self.log = log or (lambda msg: None)
@@ -1007,7 +1014,10 @@ class ScanRunner:
         idx = np.array(sorted(self.poses), np.int64)
         self._save_npz("geometry", positions=P, normals=N, mesh_vertices=V, mesh_faces=F, pose_index=idx,
                        poses=np.array([self.poses[i] for i in idx]).reshape(-1, 4, 4))
-        self._mark_done("geometry", {"points": len(P), "faces": len(F), "frames_lost": lost})
+        gp = self.geometry.gp
+        self._mark_done("geometry", {"points": len(P), "faces": len(F), "frames_lost": lost,
+                                     "fine_triggered": bool(getattr(gp, "fine_triggered", False)),
+                                     "refused_frames": int(n) if cfg.refuse_geometry else 0})
         self._publish(force=True, positions=P.copy(), normals=N.copy())
         self._note(f"geometry: {len(F)} mesh faces, {len(P)} points sampled on the object")
 
@@ -1243,8 +1253,9 @@ class ScanRunner:
                             "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
         if r.rho_s_sigma is not None:
             self._rgb_result["rho_s_sigma"] = np.asarray(r.rho_s_sigma, np.float32)
-        if self.config.normal_refine_rounds > 0:
-            self._refine_normals(start, stop, pass_name)
+        rounds = self._normal_refine_rounds()
+        if rounds > 0:
+            self._refine_normals(start, stop, pass_name, rounds)
         if r.heldout_rss is not None:
             ward = r.rho_s_ward if r.rho_s_ward is not None else np.full((len(r.model), 3), np.nan)
             zs = r.heldout_z if r.heldout_z is not None else np.full(len(r.model), np.nan)
@@ -1268,11 +1279,24 @@ class ScanRunner:
                                   if sig is not None and c < len(sig) and np.isfinite(sig[c]).all() else "")
                                for c, row in enumerate(self._rgb_result["rho_s"])))
 
-    def _refine_normals(self, start: int, stop: int, pass_name: str) -> None:
-        """Specular normal refinement (:mod:`appfusion.normal_refine`): ``normal_refine_rounds`` more
-        sweeps of the RGB frames with the final clusters, lobes and rho_s; the moved points get their
-        new normals (``self.points``) and their rho_d solved again. The normals are saved with the RGB
-        stage (``rgb.npz``), so a resumed scan keeps them."""
+    def _normal_refine_rounds(self) -> int:
+        """``ScanConfig.normal_refine_rounds``, or where it is None (the default) 3 when the geometry
+        pass's fine re-fusion fired over at least ``refuse_fine_trunc_min_frames`` frames (read from
+        the geometry stage's checkpoint, so a resumed scan decides the same), else 0."""
+        if self.config.normal_refine_rounds is not None:
+            return int(self.config.normal_refine_rounds)
+        info = self._done_info("geometry")
+        fired = bool(info.get("fine_triggered")) and int(info.get("refused_frames") or 0) >= int(
+            self.config.refuse_fine_trunc_min_frames)
+        return 3 if fired else 0
+
+    def _refine_normals(self, start: int, stop: int, pass_name: str, rounds: int) -> None:
+        """Specular normal refinement (:mod:`appfusion.normal_refine`): ``rounds`` more sweeps of the
+        RGB frames with the final clusters, lobes and rho_s; the moved points get their new normals
+        (``self.points``). Their rho_d stays the exported one (session 31: scaling it by the refit's
+        factor between the new and the old normal took the pepper's rho_d from 2.88 to 2.99 % and
+        changed its relit error by 6e-5). The normals are saved with the RGB stage (``rgb.npz``), so
+        a resumed scan keeps them."""
         from .normal_refine import NormalRefiner
 
         res = self._rgb_result
@@ -1280,11 +1304,13 @@ class ScanRunner:
         if not (rho_s.max(axis=1) > 0).any():
             return
         P, N = self.points
-        rho_d = np.asarray(res["rho_d"], np.float32).copy()
         t_rgb = self.timings.get("rgb")
         deg = float(self.config.normal_refine_deg)
         moved = None
-        for k in range(int(self.config.normal_refine_rounds)):
+        self._note(f"rgb: specular normal refinement, {rounds} rounds"
+                   + (" (the object curves tighter than the voxel: the fine re-fusion fired)"
+                      if self.config.normal_refine_rounds is None else ""))
+        for k in range(int(rounds)):
             # round 1: the points whose highlights the pass fits worst; later rounds: the ones that moved
             ref = NormalRefiner(self.rgb, rho_s, N, radii_deg=(deg / 2, deg), only=moved,
                                 min_gain=self.config.normal_refine_min_gain,
@@ -1293,13 +1319,7 @@ class ScanRunner:
                 break
             self._rgb_sweep(ref, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
             N, rd, st = ref.result()
-            moved = np.isfinite(rd).all(axis=1)
-            # the exported rho_d was pooled with its neighbours and corrected for noise clipped at
-            # black (§5g, §5h); the move changes it by the refit's factor at the new normal against
-            # the old one (the same samples), not by the raw refit, which has neither correction
-            f = ref.rho_d_factor[moved]
-            fine = np.isfinite(f) & (f > 0.25) & (f < 4.0)
-            rho_d[moved] = np.clip(np.where(fine, rho_d[moved] * np.where(fine, f, 1.0), rd[moved]), 0.0, None)
+            moved = np.isfinite(rd).all(axis=1)          # rd: the moved points' refit rho_d (not used)
             self._note(f"rgb: normal refinement round {k + 1} (tilts {deg / 2:.2g}, {deg:.2g} deg): "
                        f"{st['moved']} of {st['points']} points moved (median {st['median_move_deg']:.2f} deg, "
                        f"residual explained {st['gain_pct']}; "
@@ -1313,7 +1333,6 @@ class ScanRunner:
         if t_rgb is not None:
             self.timings["rgb"] = t_rgb
         self.points = (P, N.astype(np.float32))
-        res["rho_d"] = rho_d
         res["normals"] = self.points[1]
         self._publish(force=True, normals=self.points[1])
 

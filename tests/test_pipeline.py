@@ -303,6 +303,11 @@ def test_normal_refinement_rounds_run_are_saved_and_kept_on_resume(kinect_sphere
     assert np.allclose(np.linalg.norm(res1.normals, axis=1), 1, atol=1e-5)
     assert np.isfinite(res1.rho_d).all()
     assert "normal-refine" in res1.info["timings"]
+    # the geometry stage records what the default's gate reads: on this 12-frame session the fine
+    # re-fusion fires (its noise), but over fewer than 60 frames, so the default refines nothing
+    info = json.loads((out / "state" / "geometry.done").read_text())
+    assert isinstance(info["fine_triggered"], bool) and 0 < info["refused_frames"] < 60
+    assert ScanConfig().normal_refine_rounds is None and r1._normal_refine_rounds() == 2
     r2, res2 = _run(kinect_sphere, out, normal_refine_rounds=2)      # resumed: every stage reused
     assert any("rgb: reusing" in m for m in r2.messages)
     np.testing.assert_array_equal(res2.normals, res1.normals)
@@ -386,3 +391,24 @@ def test_a_rerun_after_a_colour_split_shows_the_split_clusters_hbsabs(tmp_path):
         assert (a is None) == (b is None)
         if a is not None:
             np.testing.assert_allclose(a, b, rtol=1e-6)
+
+
+def test_normal_refinement_by_default_only_where_the_fine_refusion_fired(tmp_path):
+    """ScanConfig.normal_refine_rounds None (the default): 3 rounds where the geometry stage's
+    checkpoint says the fine re-fusion fired over at least refuse_fine_trunc_min_frames frames (the
+    pepper, the vase), none otherwise (the capsules, the sphere, a 12-frame session); a number given
+    is kept."""
+    r = ScanRunner.__new__(ScanRunner)
+    r.out_dir = tmp_path
+    (tmp_path / "state").mkdir()
+    r.config = ScanConfig()
+    assert r.config.normal_refine_rounds is None
+    assert r._normal_refine_rounds() == 0                           # no geometry checkpoint
+    for fired, frames, want in ((True, 200, 3), (True, 60, 3), (True, 12, 0), (False, 200, 0)):
+        (tmp_path / "state" / "geometry.done").write_text(json.dumps({"fine_triggered": fired, "refused_frames": frames}))
+        assert r._normal_refine_rounds() == want, (fired, frames)
+    r.config = ScanConfig(normal_refine_rounds=1)
+    assert r._normal_refine_rounds() == 1
+    r.config = ScanConfig(normal_refine_rounds=0)
+    (tmp_path / "state" / "geometry.done").write_text(json.dumps({"fine_triggered": True, "refused_frames": 200}))
+    assert r._normal_refine_rounds() == 0

@@ -75,9 +75,10 @@ def register(sub) -> None:
     p.add_argument("--ball-on-plane", choices=("auto", "yes", "no"), default=None,
                    help="the ball rests on the marker sheet (default: the session's setting, else auto)")
     p.add_argument("--normal-refine", type=int, default=None, metavar="ROUNDS",
-                   help="rounds of specular normal refinement after the colour pass (default 0: off). It moves "
+                   help="rounds of specular normal refinement after the colour pass (default: 3 where the "
+                        "object curves tighter than the fusion's voxel, else 0; 0 turns it off). It moves "
                         "glossy points' normals to where the colour frames' highlights put them: for glossy "
-                        "objects with sharp rims (synthetic pepper: relit error 0.215 -> 0.141 with 3 rounds), "
+                        "objects with sharp rims (synthetic pepper: relit error 0.197 -> 0.129), "
                         "but it tilts smooth capsules' normals (docs/rgb-pass.md §5f)")
     p.add_argument("--skip-bad", action="store_true", help="skip damaged frames instead of stopping")
     p.add_argument("--fresh", action="store_true", help="ignore checkpoints of an earlier run in --out")
