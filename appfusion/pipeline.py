@@ -215,7 +215,7 @@ class ScanConfig:
         its voxel: the pepper's dimple, the vase's rim) over at least ``refuse_fine_trunc_min_frames``
         frames, else 0 (the capsules, the sphere: their TSDF normals are right to 0.1 degrees and the
         refinement tilted them; docs/rgb-pass.md §5f). Session 31, fresh 200-frame scans: pepper
-        relit 0.197 -> 0.129, rho_d 2.88 % either way; vase relit 0.134, unchanged.
+        relit 0.197 -> 0.129, rho_d 2.88 % either way; vase relit 0.133 -> 0.134.
     normal_refine_deg : float
         Largest tilt of the first round's candidates, degrees (rings at this and at half of it).
     normal_refine_screen : float or None
