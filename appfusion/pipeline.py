@@ -215,7 +215,9 @@ class ScanConfig:
         its voxel: the pepper's dimple, the vase's rim) over at least ``refuse_fine_trunc_min_frames``
         frames, else 0 (the capsules, the sphere: their TSDF normals are right to 0.1 degrees and the
         refinement tilted them; docs/rgb-pass.md §5f). Session 31, fresh 200-frame scans: pepper
-        relit 0.197 -> 0.129, rho_d 2.88 % either way; vase relit 0.133 -> 0.134.
+        relit 0.197 -> 0.129, rho_d 2.88 % either way. A first round whose median move reaches the
+        outer ring is undone (the vase's body, the demo capsule's shoulder: right normals pulled by
+        the highlights' registration), so the vase keeps 0.133.
     normal_refine_deg : float
         Largest tilt of the first round's candidates, degrees (rings at this and at half of it).
     normal_refine_screen : float or None
@@ -1318,6 +1320,7 @@ class ScanRunner:
             if not len(ref.sel):
                 break
             self._rgb_sweep(ref, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
+            N_before = N
             N, rd, st = ref.result()
             moved = np.isfinite(rd).all(axis=1)          # rd: the moved points' refit rho_d (not used)
             self._note(f"rgb: normal refinement round {k + 1} (tilts {deg / 2:.2g}, {deg:.2g} deg): "
@@ -1326,6 +1329,16 @@ class ScanRunner:
                        f"{100 * st['full_fraction']:.0f} % of {st['samples']} samples near a highlight), "
                        f"{st['seconds']:.1f} s")
             if not moved.any():
+                break
+            if k == 0 and st["median_move_deg"] >= 0.9 * deg:
+                # most first moves ran to the outer ring: the signature of the highlights' half-pixel
+                # registration on normals that were right (the demo capsule's shoulder, the vase's
+                # body: 0.6 -> 2.9 degrees off the truth), not of the TSDF's rounded rims, whose
+                # first moves mostly stop at the inner ring (the pepper: median 1.5 of 3 degrees)
+                N = N_before
+                self._note(f"rgb: normal refinement undone: most first moves ran to the outer ring "
+                           f"({st['median_move_deg']:.2f} of {deg:.2g} deg), which the highlights' registration "
+                           f"does on normals that were right (docs/rgb-pass.md §5f)")
                 break
             if st["median_move_deg"] < 0.9 * deg:             # most moves stopped short of the outer ring:
                 deg /= 2                                      # finer; else walk on at the same tilts

@@ -412,3 +412,47 @@ def test_normal_refinement_by_default_only_where_the_fine_refusion_fired(tmp_pat
     r.config = ScanConfig(normal_refine_rounds=0)
     (tmp_path / "state" / "geometry.done").write_text(json.dumps({"fine_triggered": True, "refused_frames": 200}))
     assert r._normal_refine_rounds() == 0
+
+
+def test_normal_refinement_is_undone_when_its_first_moves_run_to_the_outer_ring(monkeypatch):
+    """Most first-round moves at the outer ring of candidates is the highlights' registration pulling
+    at right normals (the vase's body, the demo capsule's shoulder), not a rounded rim: the normals
+    are put back and the refinement stops. Moves that mostly stop at the inner ring are kept."""
+    import appfusion.normal_refine as nr
+
+    rng = np.random.default_rng(0)
+    N0 = rng.normal(size=(50, 3)).astype(np.float32)
+    N0 /= np.linalg.norm(N0, axis=1, keepdims=True)
+    tilted = N0 + np.float32(0.05)
+    tilted /= np.linalg.norm(tilted, axis=1, keepdims=True)
+
+    class FakeRefiner:
+        median = 3.0
+
+        def __init__(self, rgb, rho_s, N, radii_deg, only=None, min_gain=0.0, screen=None):
+            self.sel = np.arange(len(N)) if only is None else np.flatnonzero(only)
+            self.N = N
+
+        def result(self):
+            rd = np.full((len(self.N), 3), np.nan)
+            rd[:10] = 0.5
+            return tilted.copy(), rd, {"moved": 10, "points": len(self.N), "median_move_deg": FakeRefiner.median,
+                                       "gain_pct": [0.1, 0.2, 0.3], "full_fraction": 0.5, "samples": 100,
+                                       "seconds": 0.0}
+
+    monkeypatch.setattr(nr, "NormalRefiner", FakeRefiner)
+    for median, kept in ((3.0, False), (1.5, True)):
+        FakeRefiner.median = median
+        r = ScanRunner.__new__(ScanRunner)
+        r.config = ScanConfig()
+        r.points = (np.zeros((50, 3), np.float32), N0.copy())
+        r._rgb_result = {"model": np.array(["ward"]), "rho_s": np.array([[0.3, 0.3, 0.3]])}
+        r.timings = {}
+        r.rgb = None
+        notes = []
+        r._note = notes.append
+        r._publish = lambda force=False, **kw: None
+        r._rgb_sweep = lambda *a, **k: 0
+        r._refine_normals(0, 1, "rgb", 3)
+        assert np.array_equal(r.points[1], tilted if kept else N0), median
+        assert any("undone" in m for m in notes) != kept

@@ -78,8 +78,9 @@ def register(sub) -> None:
                    help="rounds of specular normal refinement after the colour pass (default: 3 where the "
                         "object curves tighter than the fusion's voxel, else 0; 0 turns it off). It moves "
                         "glossy points' normals to where the colour frames' highlights put them: for glossy "
-                        "objects with sharp rims (synthetic pepper: relit error 0.197 -> 0.129), "
-                        "but it tilts smooth capsules' normals (docs/rgb-pass.md §5f)")
+                        "objects with sharp rims (synthetic pepper: relit error 0.197 -> 0.129); a first "
+                        "round whose moves mostly reach the largest tilt is undone, as on smooth capsules "
+                        "(docs/rgb-pass.md §5f)")
     p.add_argument("--skip-bad", action="store_true", help="skip damaged frames instead of stopping")
     p.add_argument("--fresh", action="store_true", help="ignore checkpoints of an earlier run in --out")
     p.add_argument("--no-progress", action="store_true")
