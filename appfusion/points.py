@@ -821,7 +821,8 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         None: no such test.
     stats : dict, optional
         Filled with ``"stage_rates"`` (median move per pass of each stage run, radians),
-        ``"base_rate"`` and ``"stages_run"``.
+        ``"base_rate"``, ``"stages_run"`` and ``"point_stages"`` ((N,) int: the stages each point
+        took; ``len(adaptive_stages)`` where the filter smoothed a point as far as it can).
 
     Returns
     -------
@@ -878,8 +879,9 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         raise AppFusionError(f"bilateral_filter_normals: adaptive_converge must be positive or None, got {adaptive_converge}")
     Ncur = passes(N0, int(iterations))
     rate = last_move[0] if int(iterations) > 0 else np.inf
+    taken = np.zeros(len(P), np.int32)
     if stats is not None:
-        stats.update(base_rate=rate, stage_rates=[], stages_run=0)
+        stats.update(base_rate=rate, stage_rates=[], stages_run=0, point_stages=taken)
     if not stages:
         return Ncur
     out, alive = Ncur.copy(), np.ones(len(P), bool)
@@ -897,10 +899,117 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         if not alive.any():                                     # no point takes later stages
             break
         out[alive] = Nnext[alive]
+        taken[alive] += 1
         Ncur = Nnext
         if stats is not None:
             stats["stages_run"] += 1
     return out
+
+
+def _monomials(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
+    """The monomials ``x^i y^j`` with ``i + j <= degree`` of arrays x, y (..., k), stacked last:
+    ``1, x, y, x^2, x y, y^2, ...`` (so columns 1 and 2 are the linear terms)."""
+    cols = [np.ones_like(x)]
+    for d in range(1, degree + 1):
+        cols.extend(x ** i * y ** (d - i) for i in range(d, -1, -1))
+    return np.stack(cols, -1)
+
+
+def jet_normals(positions: np.ndarray, normals: np.ndarray, support: np.ndarray, support_normals: np.ndarray,
+                radius: float, degree: int = 3, k: int = 256, cos_min: float = 0.5,
+                batch: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    """Normals of a weighted polynomial height fit (an osculating jet) around each point (beyond the paper).
+
+    In the tangent frame of each point's normal ``n`` (unit vectors ``t1, t2``) the support points
+    within ``radius`` give heights ``h = (q - p) . n`` over ``(x, y) = ((q - p) . t1, (q - p) . t2)``;
+    a polynomial ``h(x, y)`` of total degree ``degree`` is fitted by least squares with Gaussian
+    weights (sigma ``radius / 2``), and the normal is that of the fitted surface at the point:
+    ``n - h_x t1 - h_y t2``, normalised (Cazals & Pouget 2005, "Estimating differential quantities
+    using polynomial fitting of osculating jets"). Neighbours whose normals differ from ``n`` by more
+    than ``arccos(cos_min)`` are left out (the far side of a thin wall, a crease).
+
+    The bilateral filter (:func:`bilateral_filter_normals`) is a local-linear regression of the
+    normals: unbiased where the normal varies linearly over its kernel, so its kernel must stay
+    small where it does not, and a small kernel leaves the fused surface's noise. A cubic height
+    field is unbiased where the normal varies quadratically (the odd terms of degree 3 are what bias
+    a quadric's slope over a symmetric neighbourhood), so it can average over a wider disk. The
+    support should be the mesh's vertices, not points sampled on the mesh: those are interpolations
+    of the vertices and add no information.
+
+    Parameters
+    ----------
+    positions, normals : (N, 3) arrays
+        Where to estimate (metres) and the normals that set each local frame (unit).
+    support, support_normals : (M, 3) arrays
+        Surface samples to fit (metres; e.g. the fused mesh's vertices) and their normals.
+    radius : float
+        Fit radius, metres.
+    degree : int
+        Total degree of the height polynomial (1-4).
+    k : int
+        Nearest support points per fit (those within ``radius``).
+    cos_min : float
+        Smallest cosine between a support normal and the point's normal for it to count.
+    batch : int
+        Points per vectorised batch (memory ~ ``batch * k * 15 * 8`` bytes at degree 3).
+
+    Returns
+    -------
+    normals : (N, 3) float64
+        Unit normals, oriented like the input.
+    residual : (N,) float64
+        Weighted RMS of the fit's height residuals, metres (noise where the polynomial fits, more
+        where it does not: a crease, a rim, a fold within ``radius``). Where fewer support points
+        than twice the polynomial's terms are usable the input normal is kept and the residual is inf.
+    """
+    P, Nn = _check_points(positions, normals, "jet_normals")
+    S, SN = _check_points(support, support_normals, "jet_normals (support)")
+    if Nn is None or SN is None:
+        raise AppFusionError("jet_normals: normals of the points and of the support are required")
+    if not (np.isfinite(radius) and radius > 0):
+        raise AppFusionError(f"jet_normals: radius must be positive, got {radius}")
+    if not 1 <= int(degree) <= 4:
+        raise AppFusionError(f"jet_normals: degree must be 1-4, got {degree}")
+    P = np.asarray(P, np.float64)
+    N = np.asarray(Nn, np.float64)
+    N = N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
+    S = np.asarray(S, np.float64)
+    SN = np.asarray(SN, np.float64)
+    SN = SN / np.maximum(np.linalg.norm(SN, axis=1, keepdims=True), 1e-300)
+    degree = int(degree)
+    n_terms = (degree + 1) * (degree + 2) // 2
+    k = int(min(k, len(S)))
+    tree = cKDTree(S)
+    out = N.copy()
+    resid = np.full(len(P), np.inf)
+    for s0 in range(0, len(P), batch):
+        q, n0 = P[s0:s0 + batch], N[s0:s0 + batch]
+        dist, idx = tree.query(q, k=k, distance_upper_bound=radius)
+        dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+        ok = np.isfinite(dist)
+        idx = np.where(ok, idx, 0)
+        fr = local_frame(n0)
+        t1, t2 = fr[:, 0], fr[:, 1]
+        D = (S[idx] - q[:, None]) / radius                       # in radii: a well-conditioned fit
+        x = np.einsum("bkc,bc->bk", D, t1)
+        y = np.einsum("bkc,bc->bk", D, t2)
+        h = np.einsum("bkc,bc->bk", D, n0)
+        w = np.exp(-2.0 * (x * x + y * y)) * ok                  # sigma radius / 2
+        w *= np.einsum("bkc,bc->bk", SN[idx], n0) > cos_min
+        A = _monomials(x, y, degree)                             # (B, k, terms)
+        Aw = A * w[..., None]
+        M = np.matmul(Aw.transpose(0, 2, 1), A)
+        M += (1e-12 * np.trace(M, axis1=1, axis2=2) + 1e-300)[:, None, None] * np.eye(n_terms)  # a tiny ridge
+        c = np.linalg.solve(M, np.matmul(Aw.transpose(0, 2, 1), h[..., None]))[..., 0]
+        r = h - np.matmul(A, c[..., None])[..., 0]
+        wsum = w.sum(1)
+        good = ((w > 0).sum(1) >= 2 * n_terms) & np.isfinite(c).all(1)
+        nn = n0 - c[:, 1:2] * t1 - c[:, 2:3] * t2
+        nn /= np.linalg.norm(nn, axis=1, keepdims=True)
+        out[s0:s0 + batch][good] = nn[good]
+        rr = np.sqrt((w * r * r).sum(1) / np.maximum(wsum, 1e-300)) * radius
+        resid[s0:s0 + batch][good] = rr[good]
+    return out, resid
 
 
 def _plane_fits(X: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -429,6 +429,43 @@ def test_geometry_pass_lost_frames_resume():
     assert _ate(res.poses[ok], s.poses[ok]) < 0.003
 
 
+def test_jet_normals_only_where_the_normal_filter_stages_do_not_converge(monkeypatch):
+    """``GeometryConfig.jet_radius``: the cubic fits replace the filtered normals when the filter ran
+    fewer adaptive stages than configured (its convergence test stopped them: the pepper, the vase),
+    and not when it ran them all (the capsules, whose filtered normals the fits would make noisier),
+    nor on a mesh too coarse for the fit's disk (``jet_min_vertices``)."""
+    import appfusion.geometry_pass as gpm
+
+    s = make_sequence(10, 320, 240, seed=6)
+    gp = GeometryPass(GeometryConfig(n_points=5000, jet_min_vertices=0), meta={"extra": s.meta_extra})
+    for f in s.frames:
+        gp.add_frame(f)
+    real, sample = gpm.bilateral_filter_normals, gpm.sample_points
+    first = []                       # the same points each time (Open3D's mesh extraction may reorder)
+    monkeypatch.setattr(gpm, "sample_points", lambda *a, **k: first[0] if first else first.append(sample(*a, **k)) or first[0])
+
+    def stages_run(n):
+        def filt(*a, stats=None, **k):
+            out = real(*a, stats=stats, **k)
+            stats["stages_run"] = n
+            return out
+        return filt
+
+    monkeypatch.setattr(gpm, "bilateral_filter_normals", stages_run(3))
+    kept = gp.result()
+    assert gp.jet_fraction is None
+    monkeypatch.setattr(gpm, "bilateral_filter_normals", stages_run(1))
+    jet = gp.result()
+    assert gp.jet_fraction > 0.8
+    assert np.array_equal(jet.points, kept.points)
+    moved = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", jet.normals, kept.normals), -1, 1)))
+    assert np.median(moved) > 0.01 and np.allclose(np.linalg.norm(jet.normals, axis=1), 1)
+    gp.config.jet_min_vertices = GeometryConfig().jet_min_vertices   # this 4 mm mesh: ~90 in a disk
+    assert np.array_equal(gp.result().normals, kept.normals) and gp.jet_fraction is None
+    gp.config.jet_min_vertices, gp.config.jet_radius = 0, None
+    assert np.array_equal(gp.result().normals, kept.normals) and gp.jet_fraction is None
+
+
 def test_geometry_pass_reads_a_recorded_session(tmp_path):
     """Frames written with replay.session and read back (depth quantised to 1/5000 m, IR to
     10 bits, RGB to 16-bit linear) go through the geometry pass like the in-memory ones."""

@@ -307,6 +307,7 @@ def test_normal_refinement_rounds_run_are_saved_and_kept_on_resume(kinect_sphere
     # re-fusion fires (its noise), but over fewer than 60 frames, so the default refines nothing
     info = json.loads((out / "state" / "geometry.done").read_text())
     assert isinstance(info["fine_triggered"], bool) and 0 < info["refused_frames"] < 60
+    assert "jet_fraction" in info
     assert ScanConfig().normal_refine_rounds is None and r1._normal_refine_rounds() == 2
     r2, res2 = _run(kinect_sphere, out, normal_refine_rounds=2)      # resumed: every stage reused
     assert any("rgb: reusing" in m for m in r2.messages)
@@ -395,18 +396,20 @@ def test_a_rerun_after_a_colour_split_shows_the_split_clusters_hbsabs(tmp_path):
 
 def test_normal_refinement_by_default_only_where_the_fine_refusion_fired(tmp_path):
     """ScanConfig.normal_refine_rounds None (the default): 3 rounds where the geometry stage's
-    checkpoint says the fine re-fusion fired over at least refuse_fine_trunc_min_frames frames (the
-    pepper, the vase), none otherwise (the capsules, the sphere, a 12-frame session); a number given
-    is kept."""
+    checkpoint says the fine re-fusion fired over at least refuse_fine_trunc_min_frames frames and
+    the normals are the filter's, none otherwise (the capsules, the sphere, a 12-frame session, and
+    since session 32 the pepper and the vase, whose normals are jet fits); a number given is kept."""
     r = ScanRunner.__new__(ScanRunner)
     r.out_dir = tmp_path
     (tmp_path / "state").mkdir()
     r.config = ScanConfig()
     assert r.config.normal_refine_rounds is None
     assert r._normal_refine_rounds() == 0                           # no geometry checkpoint
-    for fired, frames, want in ((True, 200, 3), (True, 60, 3), (True, 12, 0), (False, 200, 0)):
-        (tmp_path / "state" / "geometry.done").write_text(json.dumps({"fine_triggered": fired, "refused_frames": frames}))
-        assert r._normal_refine_rounds() == want, (fired, frames)
+    for fired, frames, jet, want in ((True, 200, None, 3), (True, 60, None, 3), (True, 12, None, 0),
+                                     (False, 200, None, 0), (True, 200, 0.95, 0)):
+        (tmp_path / "state" / "geometry.done").write_text(json.dumps(
+            {"fine_triggered": fired, "refused_frames": frames, "jet_fraction": jet}))
+        assert r._normal_refine_rounds() == want, (fired, frames, jet)
     r.config = ScanConfig(normal_refine_rounds=1)
     assert r._normal_refine_rounds() == 1
     r.config = ScanConfig(normal_refine_rounds=0)
