@@ -65,7 +65,7 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: default, from 60 frames on; 35: holes closed by boundary loop (clipped to a star, a web of rings,
 #: faired), no longer by VTK's filler; 36: specular normal refinement by default where the fine
 #: re-fusion fired, moved points keep their rho_d; 37: normals from cubic jet fits where the normal
-#: filter's stages do not converge)
+#: filter's stages do not converge, a crease's rounded band split between its faces)
 CHECKPOINT_VERSION = 37
 
 
@@ -218,7 +218,10 @@ class ScanConfig:
         refinement tilted them; docs/rgb-pass.md §5f). Session 31, fresh 200-frame scans: pepper
         relit 0.197 -> 0.129, rho_d 2.88 % either way. A first round whose median move reaches the
         outer ring is undone (the vase's body, the demo capsule's shoulder: right normals pulled by
-        the highlights' registration), so the vase keeps 0.133.
+        the highlights' registration), so the vase keeps 0.133. Since session 32 the default also
+        needs the normals to be the filter's: where they are cubic jet fits
+        (``GeometryConfig.jet_radius``: the pepper, the vase) it made the pepper worse (0.0755 ->
+        0.0836).
     normal_refine_deg : float
         Largest tilt of the first round's candidates, degrees (rings at this and at half of it).
     normal_refine_screen : float or None
