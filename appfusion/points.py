@@ -972,10 +972,15 @@ def jet_normals(positions: np.ndarray, normals: np.ndarray, support: np.ndarray,
         raise AppFusionError(f"jet_normals: degree must be 1-4, got {degree}")
     P = np.asarray(P, np.float64)
     N = np.asarray(Nn, np.float64)
-    N = N / np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
     S = np.asarray(S, np.float64)
     SN = np.asarray(SN, np.float64)
-    SN = SN / np.maximum(np.linalg.norm(SN, axis=1, keepdims=True), 1e-300)
+    for name, A in (("normals", N), ("support normals", SN)):
+        ln = np.linalg.norm(A, axis=1)
+        if not np.all(np.isfinite(ln)) or np.any(ln < 1e-9):
+            raise AppFusionError(f"jet_normals: {name} contain NaN or zero vectors "
+                                 f"(first bad row {int(np.flatnonzero(~(np.isfinite(ln) & (ln >= 1e-9)))[0])})")
+    N = N / np.linalg.norm(N, axis=1, keepdims=True)
+    SN = SN / np.linalg.norm(SN, axis=1, keepdims=True)
     degree = int(degree)
     n_terms = (degree + 1) * (degree + 2) // 2
     k = int(min(k, len(S)))

@@ -388,6 +388,8 @@ def test_jet_normals_are_exact_on_a_cubic_and_their_residual_marks_a_crease():
         jet_normals(P, up[:3], S, up, 0.01, degree=5)
     with pytest.raises(AppFusionError, match="do not match"):
         jet_normals(P, up[:2], S, up, 0.01)
+    with pytest.raises(AppFusionError, match="support normals contain NaN"):
+        jet_normals(P, up[:3], S, np.where(np.arange(len(S))[:, None] == 7, np.nan, up), 0.01)
 
 
 def test_interior_mask_leaves_out_the_points_near_another_label():
