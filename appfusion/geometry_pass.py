@@ -322,8 +322,10 @@ class GeometryPass:
         self.refuse_scale: float | None = None
         self.tight_fraction: float | None = None
         self.fine_triggered = False                  # refuse_fine_scale applied (the object curves tightly)
-        #: fraction of the points whose normals :meth:`result` took from jet fits (None: not run)
+        #: fraction of the points whose normals :meth:`result` took from jet fits (None: not run), and
+        #: each point's fit residual over the median (inf where no fit; None: not run)
         self.jet_fraction: float | None = None
+        self.jet_residual: np.ndarray | None = None
         self.tracker = MarkerTracker(self.marker_config, from_three=self.config.three_circle_numbers)
         self.states: list[FrameState] = []
         self.box: ObjectBox | None = None
@@ -774,14 +776,17 @@ class GeometryPass:
     def _jet_normals(self, mesh: o3d.geometry.TriangleMesh, P: np.ndarray, N: np.ndarray) -> tuple[np.ndarray, float]:
         """The filtered normals ``N`` replaced by cubic jet fits to the mesh's vertices where the fit's
         residual is at most ``config.jet_max_residual`` times its median (:func:`jet_normals`;
-        ``config.jet_radius``); returns the normals and the fraction of points replaced."""
+        ``config.jet_radius``); returns the normals and the fraction of points replaced, and keeps
+        each point's residual over the median in :attr:`jet_residual`."""
         cfg = self.config
         Nj, resid = jet_normals(P, N, np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals),
                                 radius=float(cfg.jet_radius), degree=int(cfg.jet_degree))
         fin = np.isfinite(resid)
         if not fin.any():
+            self.jet_residual = np.full(len(P), np.inf)
             return N, 0.0
-        use = fin & (resid <= float(cfg.jet_max_residual) * np.median(resid[fin]))
+        self.jet_residual = resid / np.median(resid[fin])
+        use = self.jet_residual <= float(cfg.jet_max_residual)
         return np.where(use[:, None], Nj, N), float(use.mean())
 
     def result(self, n_points: int | None = None, require_markers: bool = True) -> GeometryResult:
@@ -833,7 +838,7 @@ class GeometryPass:
                                       adaptive_stages=cfg.bilateral_adaptive_stages,
                                       adaptive_c=cfg.bilateral_adaptive_c,
                                       adaptive_converge=cfg.bilateral_adaptive_converge, stats=fstats)
-        self.jet_fraction = None
+        self.jet_fraction = self.jet_residual = None
         if (cfg.jet_radius is not None and cfg.bilateral_adaptive_stages
                 and fstats["stages_run"] < len(cfg.bilateral_adaptive_stages)
                 and len(mesh.vertices) / max(area, 1e-12) * np.pi * cfg.jet_radius ** 2 >= cfg.jet_min_vertices):

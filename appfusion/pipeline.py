@@ -218,10 +218,15 @@ class ScanConfig:
         refinement tilted them; docs/rgb-pass.md §5f). Session 31, fresh 200-frame scans: pepper
         relit 0.197 -> 0.129, rho_d 2.88 % either way. A first round whose median move reaches the
         outer ring is undone (the vase's body, the demo capsule's shoulder: right normals pulled by
-        the highlights' registration), so the vase keeps 0.133. Since session 32 the default also
-        needs the normals to be the filter's: where they are cubic jet fits
-        (``GeometryConfig.jet_radius``: the pepper, the vase) it made the pepper worse (0.0755 ->
-        0.0836).
+        the highlights' registration), so the vase keeps 0.133.
+    normal_refine_jet_residual : float or None
+        Where the normals are cubic jet fits (``GeometryConfig.jet_radius``: the pepper, the vase),
+        the refinement's first round considers only the points whose fit left a residual over this
+        many times the median (a rim or ridge the cubic does not describe; session 32). Pepper (200
+        frames a pass): relit 0.0755 without refinement, 0.0836 refining every point (its body's
+        glints got worse: views 2 and 3 0.052 -> 0.077, 0.039 -> 0.076), **0.0637** refining the
+        13913 points over 1.5 times the median (view 1, the grazing top around the stem, 0.129 ->
+        0.101; views 2 and 3 unchanged); 0.0751 over 2 times (4154 points). None: every point.
     normal_refine_deg : float
         Largest tilt of the first round's candidates, degrees (rings at this and at half of it).
     normal_refine_screen : float or None
@@ -294,6 +299,7 @@ class ScanConfig:
     crease_radius_voxels: float | None = 2.5
     plane_snap: bool = True
     normal_refine_rounds: int | None = None
+    normal_refine_jet_residual: float | None = 1.5
     normal_refine_deg: float = 3.0
     normal_refine_screen: float | None = None
     normal_refine_min_gain: float = 0.0
@@ -580,6 +586,8 @@ class ScanRunner:
         self.points: tuple[np.ndarray, np.ndarray] | None = None
         self.mesh: tuple[np.ndarray, np.ndarray] | None = None
         self.poses: dict[int, np.ndarray] = {}
+        #: each geometry point's jet fit residual over the median (GeometryPass.jet_residual; None: no jets)
+        self.jet_residual: np.ndarray | None = None
         self._result = None
         self._refiner = None                  # PoseRefiner of the final mesh, built on first use
         self._refined: dict[int, np.ndarray] = {}   # frame index -> pose re-registered to the mesh
@@ -968,6 +976,8 @@ class ScanRunner:
         if g is not None:
             self.points = (g["positions"], g["normals"])
             self.mesh = (g["mesh_vertices"], g["mesh_faces"])
+            jr = g["jet_residual"] if "jet_residual" in g else np.zeros(0)
+            self.jet_residual = jr if len(jr) == len(g["positions"]) else None
             self.poses = {int(i): p for i, p in zip(g["pose_index"], g["poses"])}
             self._publish(force=True, positions=self.points[0], normals=self.points[1])
             return
@@ -1018,9 +1028,11 @@ class ScanRunner:
         self.poses.update(poses)  # every fused frame's final pose in the marker frame
         self.points, self.mesh = (P, N), (V, F)
         idx = np.array(sorted(self.poses), np.int64)
-        self._save_npz("geometry", positions=P, normals=N, mesh_vertices=V, mesh_faces=F, pose_index=idx,
-                       poses=np.array([self.poses[i] for i in idx]).reshape(-1, 4, 4))
         gp = self.geometry.gp
+        self.jet_residual = getattr(gp, "jet_residual", None)
+        self._save_npz("geometry", positions=P, normals=N, mesh_vertices=V, mesh_faces=F, pose_index=idx,
+                       jet_residual=np.zeros(0) if self.jet_residual is None else self.jet_residual,
+                       poses=np.array([self.poses[i] for i in idx]).reshape(-1, 4, 4))
         self._mark_done("geometry", {"points": len(P), "faces": len(F), "frames_lost": lost,
                                      "fine_triggered": bool(getattr(gp, "fine_triggered", False)),
                                      "refused_frames": int(n) if cfg.refuse_geometry else 0,
@@ -1292,20 +1304,16 @@ class ScanRunner:
 
     def _normal_refine_rounds(self) -> int:
         """``ScanConfig.normal_refine_rounds``, or where it is None (the default) 3 when the geometry
-        pass's fine re-fusion fired over at least ``refuse_fine_trunc_min_frames`` frames and its
-        normals are the filter's, not cubic jet fits (``GeometryConfig.jet_radius``), else 0. Both
-        are read from the geometry stage's checkpoint, so a resumed scan decides the same.
-
-        Session 32: on the pepper the jet fits took the normals' median error to 0.28 degrees, and
-        the refinement then made the relit error worse (0.0755 -> 0.0836 with its 1.5 / 3 degree
-        tilts; with 0.38 / 0.75 degree tilts its first moves ran to the outer ring and it was
-        undone); on the vase it was undone either way."""
+        pass's fine re-fusion fired over at least ``refuse_fine_trunc_min_frames`` frames (read from
+        the geometry stage's checkpoint, so a resumed scan decides the same), else 0. Where the
+        normals are jet fits, :meth:`_refine_normals` refines only the points the fits describe
+        worst (``ScanConfig.normal_refine_jet_residual``)."""
         if self.config.normal_refine_rounds is not None:
             return int(self.config.normal_refine_rounds)
         info = self._done_info("geometry")
         fired = bool(info.get("fine_triggered")) and int(info.get("refused_frames") or 0) >= int(
             self.config.refuse_fine_trunc_min_frames)
-        return 3 if fired and info.get("jet_fraction") is None else 0
+        return 3 if fired else 0
 
     def _refine_normals(self, start: int, stop: int, pass_name: str, rounds: int) -> None:
         """Specular normal refinement (:mod:`appfusion.normal_refine`): ``rounds`` more sweeps of the
@@ -1324,12 +1332,17 @@ class ScanRunner:
         t_rgb = self.timings.get("rgb")
         deg = float(self.config.normal_refine_deg)
         moved = None
+        jr, jmax = getattr(self, "jet_residual", None), self.config.normal_refine_jet_residual
+        first = None if jr is None or jmax is None or len(jr) != len(N) else ~(np.asarray(jr) <= float(jmax))
         self._note(f"rgb: specular normal refinement, {rounds} rounds"
                    + (" (the object curves tighter than the voxel: the fine re-fusion fired)"
-                      if self.config.normal_refine_rounds is None else ""))
+                      if self.config.normal_refine_rounds is None else "")
+                   + ("" if first is None else
+                      f"; {int(first.sum())} points whose jet fit's residual is over {float(jmax):g} times the median"))
         for k in range(int(rounds)):
-            # round 1: the points whose highlights the pass fits worst; later rounds: the ones that moved
-            ref = NormalRefiner(self.rgb, rho_s, N, radii_deg=(deg / 2, deg), only=moved,
+            # round 1: the points whose highlights the pass fits worst (of those the jets fit worst,
+            # where the normals are jet fits); later rounds: the ones that moved
+            ref = NormalRefiner(self.rgb, rho_s, N, radii_deg=(deg / 2, deg), only=first if moved is None else moved,
                                 min_gain=self.config.normal_refine_min_gain,
                                 screen=self.config.normal_refine_screen if moved is None else None)
             if not len(ref.sel):

@@ -76,10 +76,10 @@ def register(sub) -> None:
                    help="the ball rests on the marker sheet (default: the session's setting, else auto)")
     p.add_argument("--normal-refine", type=int, default=None, metavar="ROUNDS",
                    help="rounds of specular normal refinement after the colour pass (default: 3 where the "
-                        "object curves tighter than the fusion's voxel and its normals are the filter's, not "
-                        "cubic jet fits, else 0; 0 turns it off). It moves "
+                        "object curves tighter than the fusion's voxel, else 0; 0 turns it off; where the "
+                        "normals are cubic jet fits it starts from the points the fits describe worst). It moves "
                         "glossy points' normals to where the colour frames' highlights put them: for glossy "
-                        "objects with sharp rims (synthetic pepper: relit error 0.197 -> 0.129); a first "
+                        "objects with sharp rims (synthetic pepper: relit error 0.0755 -> 0.064); a first "
                         "round whose moves mostly reach the largest tilt is undone, as on smooth capsules "
                         "(docs/rgb-pass.md §5f)")
     p.add_argument("--skip-bad", action="store_true", help="skip damaged frames instead of stopping")
