@@ -1148,6 +1148,7 @@ def _fair_new_vertices(V: np.ndarray, F: np.ndarray, first_new: int, rim: np.nda
         out[first_new:] += lift * h[:, None]
     return out
 
+
 def _drop_small_components(mesh: o3d.geometry.TriangleMesh, min_fraction: float) -> o3d.geometry.TriangleMesh:
     """Remove connected pieces with fewer triangles than ``min_fraction`` of the largest one."""
     if len(mesh.triangles) == 0 or min_fraction <= 0:

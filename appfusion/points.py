@@ -736,6 +736,15 @@ def sample_points(mesh, n: int = 100_000, seed: int = 0) -> tuple[np.ndarray, np
     return P, Nn
 
 
+def _nearest_within(tree: cKDTree, Q: np.ndarray, k: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` nearest of ``tree``'s points to each of ``Q`` (M, 3) within ``radius``: their indices
+    (M, k), 0 where there is none, and which are found (M, k) bool."""
+    d, j = tree.query(Q, k=k, distance_upper_bound=radius, workers=-1)
+    d, j = d.reshape(len(Q), k), j.reshape(len(Q), k)
+    ok = np.isfinite(d)
+    return np.where(ok, j, 0), ok
+
+
 def _neighbourhoods(P: np.ndarray, radius: float, k: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """k nearest neighbours of every point among a random subset dense enough that k of them
     cover ``radius``; returns (indices (N, k) into P, distances (N, k), valid (N, k))."""
@@ -821,8 +830,7 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         None: no such test.
     stats : dict, optional
         Filled with ``"stage_rates"`` (median move per pass of each stage run, radians),
-        ``"base_rate"``, ``"stages_run"`` and ``"point_stages"`` ((N,) int: the stages each point
-        took; ``len(adaptive_stages)`` where the filter smoothed a point as far as it can).
+        ``"base_rate"`` and ``"stages_run"``.
 
     Returns
     -------
@@ -879,9 +887,8 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         raise AppFusionError(f"bilateral_filter_normals: adaptive_converge must be positive or None, got {adaptive_converge}")
     Ncur = passes(N0, int(iterations))
     rate = last_move[0] if int(iterations) > 0 else np.inf
-    taken = np.zeros(len(P), np.int32)
     if stats is not None:
-        stats.update(base_rate=rate, stage_rates=[], stages_run=0, point_stages=taken)
+        stats.update(base_rate=rate, stage_rates=[], stages_run=0)
     if not stages:
         return Ncur
     out, alive = Ncur.copy(), np.ones(len(P), bool)
@@ -899,7 +906,6 @@ def bilateral_filter_normals(positions: np.ndarray, normals: np.ndarray, sigma_s
         if not alive.any():                                     # no point takes later stages
             break
         out[alive] = Nnext[alive]
-        taken[alive] += 1
         Ncur = Nnext
         if stats is not None:
             stats["stages_run"] += 1
@@ -989,10 +995,7 @@ def jet_normals(positions: np.ndarray, normals: np.ndarray, support: np.ndarray,
     resid = np.full(len(P), np.inf)
     for s0 in range(0, len(P), batch):
         q, n0 = P[s0:s0 + batch], N[s0:s0 + batch]
-        dist, idx = tree.query(q, k=k, distance_upper_bound=radius)
-        dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-        ok = np.isfinite(dist)
-        idx = np.where(ok, idx, 0)
+        idx, ok = _nearest_within(tree, q, k, radius)
         fr = local_frame(n0)
         t1, t2 = fr[:, 0], fr[:, 1]
         D = (S[idx] - q[:, None]) / radius                       # in radii: a well-conditioned fit
@@ -1181,10 +1184,8 @@ def _crease_band(P: np.ndarray, out: np.ndarray, cand: np.ndarray, radius: float
     if len(fidx) == 0:
         return
     kk = int(min(64, len(fidx)))
-    d, jj = cKDTree(P[fidx]).query(P[cand], k=kk, distance_upper_bound=2.0 * radius)
-    d, jj = d.reshape(len(cand), kk), jj.reshape(len(cand), kk)
-    ok = np.isfinite(d)
-    jj = fidx[np.where(ok, jj, 0)]
+    jj, ok = _nearest_within(cKDTree(P[fidx]), P[cand], kk, 2.0 * radius)
+    jj = fidx[jj]
     fn = out[jj]                                                      # (C, kk, 3) the faces' normals
     cos_band = np.cos(np.radians(band_deg))
     band = ok.any(1) & (np.where(ok, np.einsum("ckx,cx->ck", fn, out[cand]), -1.0).max(1) < cos_band)
@@ -1199,10 +1200,8 @@ def _crease_band(P: np.ndarray, out: np.ndarray, cand: np.ndarray, radius: float
     rest = cand[~band]
     if len(rest):
         k2 = int(min(16, len(rest)))
-        d2, j2 = cKDTree(P[rest]).query(P[cand[r]], k=k2, distance_upper_bound=radius)
-        d2, j2 = d2.reshape(len(r), k2), j2.reshape(len(r), k2)
-        ok2 = np.isfinite(d2)
-        n2 = out[rest[np.where(ok2, j2, 0)]]
+        j2, ok2 = _nearest_within(cKDTree(P[rest]), P[cand[r]], k2, radius)
+        n2 = out[rest[j2]]
         same = ok2 & (np.einsum("rkx,rx->rk", n2, side) > cos_band)   # on the chosen face, nearest first
         has = same.any(1)
         first = same.argmax(1)
