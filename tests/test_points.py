@@ -658,3 +658,39 @@ def test_snap_planes_gives_a_drooping_lids_rim_the_lids_normal_and_leaves_curved
         snap_planes(P, N, voxel=0.0)
     with pytest.raises(AppFusionError, match="normals"):
         snap_planes(P, N[:10], voxel=voxel)
+
+
+def test_interpolate_mls_reproduces_a_linear_field_and_keeps_an_edge():
+    from appfusion.export import transfer_to_vertices
+    from appfusion.points import interpolate_mls
+
+    rng = np.random.default_rng(4)
+    P = np.c_[rng.uniform(0, 0.05, (4000, 2)), np.zeros(4000)]
+    N = np.tile([0.0, 0.0, 1.0], (4000, 1))
+    Q = np.c_[rng.uniform(0.01, 0.04, (500, 2)), np.zeros(500)]
+    lin = np.c_[0.2 + 8.0 * P[:, 0], 0.5 - 4.0 * P[:, 1]]           # (N, 2) linear in x and y
+    truth = np.c_[0.2 + 8.0 * Q[:, 0], 0.5 - 4.0 * Q[:, 1]]
+    out = interpolate_mls(P, N, lin, Q, clamp=False)
+    assert out.shape == (500, 2) and out.dtype == np.float64
+    np.testing.assert_allclose(out, truth, atol=5e-5)                    # exact, up to the ridge term
+    # clamped to the 6 neighbours' range: where all lie on one side along the gradient, slightly off
+    assert np.abs(interpolate_mls(P, N, lin, Q) - truth).max() < 0.01
+    idw = transfer_to_vertices(P, lin, Q)
+    assert np.abs(idw - truth).max() > 20 * np.abs(out - truth).max()   # inverse distance flattens it
+    # a step (a print's edge): within the neighbours' range, exact away from it
+    step = np.where(P[:, 0] > 0.025, 0.8, 0.1).astype(np.float32)
+    s = interpolate_mls(P, N, step, Q)
+    assert s.dtype == np.float32 and s.min() >= 0.1 - 1e-7 and s.max() <= 0.8 + 1e-7
+    far = np.abs(Q[:, 0] - 0.025) > 0.002
+    np.testing.assert_allclose(s[far], np.where(Q[far, 0] > 0.025, 0.8, 0.1), atol=1e-4)
+    # the same with a tree given, in blocks
+    from scipy.spatial import cKDTree
+    np.testing.assert_allclose(interpolate_mls(P, N, lin, Q, clamp=False, tree=cKDTree(P), batch=77), out)
+    # two points: the nearest one's value
+    np.testing.assert_array_equal(interpolate_mls(P[:2], N[:2], step[:2], P[:2]), step[:2])
+    with pytest.raises(AppFusionError, match="k must be at least 3"):
+        interpolate_mls(P, N, lin, Q, k=2)
+    with pytest.raises(AppFusionError, match="NaN"):
+        interpolate_mls(P, N, lin, np.array([[np.nan, 0, 0]]))
+    with pytest.raises(AppFusionError, match="do not match"):
+        interpolate_mls(P, N, lin[:10], Q)

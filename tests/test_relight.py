@@ -101,8 +101,10 @@ def test_render_view_takes_rho_d_from_the_points_not_the_coarse_mesh():
     # Lambertian under a uniform upper hemisphere of 1: L = rho_d
     assert row[40] == pytest.approx(0.1, rel=0.03)             # stripe centre
     assert row[10] == pytest.approx(0.6, rel=0.03) and row[70] == pytest.approx(0.6, rel=0.03)
+    # the dark points lie at x = -1, 0, 1 mm and the bright ones from +-2 mm: the edges lie between,
+    # the stripe ~3 mm = 6 pixels wide (inverse distance gave 8, moving least squares 5)
     dark = np.flatnonzero(row < 0.35)
-    assert 6 <= len(dark) <= 10                                # ~4 mm = 8 pixels wide
+    assert 5 <= len(dark) <= 9
 
 
 def test_bad_env_rejected():
