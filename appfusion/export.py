@@ -3,8 +3,11 @@
 - The mesh comes from the sampled points by ball pivoting (Bernardini et al. 1999, as in §6) or is the
   TSDF mesh, whichever the pipeline measured better (:func:`mesh_from_points`).
 - Point attributes are transferred to mesh vertices by inverse-distance weighting of the k nearest
-  points, a UV atlas is computed with Open3D (UVAtlas), and per-vertex attributes are baked into
-  textures.
+  points (normals; rho_s, alpha and clusters from the nearest point), a UV atlas is computed with
+  Open3D (UVAtlas), and per-vertex attributes are baked into textures. rho_d, which has the detail,
+  is taken per texel instead: each texel's surface position is baked and the points' rho_d fitted
+  there (:func:`texel_values`, session 33; ``docs/img/rho_d_texture_texels.png``: the demo label's
+  stripe, per vertex on the left).
 - Written files (``out_dir``): ``object.glb`` (glTF 2.0 binary), ``object.obj`` + ``object.mtl``,
   ``points.ply`` (binary PLY with every per-point attribute), and the exact Ward maps beside them:
   ``rho_d.png`` (sRGB) and ``rho_d.exr``, ``rho_s.exr``/``rho_s.png``, ``alpha.exr``/``alpha.png``,
@@ -159,6 +162,41 @@ def bake_textures(vertices, faces, attrs: dict[str, np.ndarray], size: int = 102
     return uvs, {k: v.numpy().astype(np.float32) for k, v in tex.items()}
 
 
+def texel_values(positions: np.ndarray, normals: np.ndarray, values: np.ndarray, texel_positions: np.ndarray,
+                 covered: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """A texture of per-point values taken at each texel's own place on the surface (beyond the paper).
+
+    Baking per-vertex values interpolates them over the triangles, so a texture holds no more detail
+    than the mesh's vertices (the demo: 3501 vertices, ~4 mm apart, for 100k points ~1 mm apart). Here
+    the texels' surface positions are baked instead (linear over each triangle, so exact) and each
+    covered texel takes the points' value there by :func:`appfusion.points.interpolate_mls`.
+
+    Parameters
+    ----------
+    positions, normals : (N, 3) arrays
+        The scan's points and unit normals.
+    values : (N, C) array
+        Per-point values.
+    texel_positions : (H, W, 3) array
+        Baked surface positions (metres).
+    covered : (H, W) bool
+        Texels on (or within the bake's margin of) a triangle.
+    fallback : (H, W, C) array
+        The values elsewhere (e.g. the per-vertex bake).
+
+    Returns
+    -------
+    (H, W, C) float32
+    """
+    from .points import interpolate_mls
+
+    out = np.array(fallback, np.float32)
+    if covered.any():
+        out[covered] = interpolate_mls(positions, normals, np.asarray(values, np.float32),
+                                       np.asarray(texel_positions)[covered])
+    return out
+
+
 def _write_png(path: Path, img_linear01: np.ndarray, srgb: bool = True) -> None:
     import cv2
 
@@ -248,7 +286,11 @@ def export_result(result: ScanResult, out_dir: str | os.PathLike, texture_size: 
         "alpha": transfer_to_vertices(result.positions, result.point_alpha(), V, nearest=True),
         "cluster": cluster_colours(transfer_to_vertices(result.positions, result.labels, V, nearest=True)),
     }
+    attrs["position"] = V
+    attrs["covered"] = np.ones(len(V), np.float32)
     uvs, tex = bake_textures(V, F, attrs, size=texture_size)
+    tex["rho_d"] = texel_values(result.positions, result.normals, result.rho_d, tex.pop("position"),
+                                tex.pop("covered")[..., 0] > 0.5, tex["rho_d"])
     written: dict[str, Path] = {}
     _write_png(out / "rho_d.png", tex["rho_d"])
     _write_exr(out / "rho_d.exr", tex["rho_d"])
