@@ -94,7 +94,8 @@ def test_export_writes_loadable_glb_obj_ply(tmp_path):
 
 def test_rho_d_texture_holds_the_points_detail_on_a_coarse_mesh(tmp_path):
     """rho_d is baked per texel from the points (export.texel_values), not per vertex: stripes ~4 mm
-    wide on a mesh whose vertices are ~15 mm apart stay in the texture."""
+    wide on a mesh whose vertices are ~15 mm apart stay in the texture; the vertex normals are the
+    points' normal field's."""
     import cv2
     import open3d as o3d
 
@@ -109,6 +110,14 @@ def test_rho_d_texture_holds_the_points_detail_on_a_coarse_mesh(tmp_path):
     assert len(g) > 10000 and g.min() >= 0.1 - 1e-6 and g.max() <= 0.8 + 1e-6
     # texels at either stripe value: 0.59 (per-vertex baking: 0.29)
     assert np.mean((np.abs(g - 0.1) < 0.05) | (np.abs(g - 0.8) < 0.05)) > 0.5
+    # the .glb's vertex normals are the points' normal field at each vertex (exact radial normals here)
+    import trimesh
+
+    geom = list(trimesh.load(tmp_path / "object.glb").geometry.values())[0]
+    radial = geom.vertices - [0, 0, 0.05]
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    err = np.degrees(np.arccos(np.clip(np.einsum("vc,vc->v", geom.vertex_normals, radial), -1, 1)))
+    assert np.median(err) < 0.05                            # inverse distance over 4 points: 0.41
 
 
 def test_convergence_figure_marks_the_exported_values(tmp_path):
