@@ -34,6 +34,9 @@ Only evaluation reads ``truth/``; the engine never does. Metrics (names as in ``
   (a diagnostic beside it, not a replacement): both renderers shoot one ray per pixel, and at
   grazing incidence tens of micrometres of surface move a hit's normal by degrees, so a glint on the
   silhouette can dominate the figure (seed 3: two pixels held most of one view's error).
+- ``export_normal_err_deg``, ``export_rho_d_median_rel_err`` (:func:`export_error`): the exported
+  files themselves, the ``.glb``'s vertex normals and the ``rho_d.exr`` map read at the centroid of
+  each triangle (where a bake from the vertices interpolates), medians as above.
 """
 
 from __future__ import annotations
@@ -221,6 +224,53 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
         out["relit_rel_rmse"], out["_relit_pairs"], out["relit_interior_rel_rmse"] = relit_error(
             result, tdir, spp=relight_spp, interior=True)
     return out
+
+
+def export_error(out_dir: str | os.PathLike, session: str | os.PathLike) -> dict[str, float]:
+    """The exported mesh's normals and rho_d map against the truth (session 33).
+
+    ``export_normal_err_deg``: median angle between ``object.glb``'s vertex normals and the truth
+    surface normal at the closest truth point. ``export_rho_d_median_rel_err``: ``rho_d.exr`` read
+    (bilinearly) at each triangle's centroid through the triangle's texture coordinates, against the
+    truth's ``rho_d`` at the closest truth point; median over triangles and channels, triangles within
+    1 cm of the support plane left out (as ``rho_d_median_rel_err``). The centroid is the place a
+    texture baked from the mesh's vertices interpolates most.
+    """
+    import cv2
+    import trimesh
+
+    out = Path(out_dir)
+    tdir = truth_dir(session)
+    if tdir is None:
+        raise AppFusionError(f"{session}: no truth/ folder (only synthetic sessions have ground truth)")
+    for f in ("object.glb", "rho_d.exr"):
+        if not (out / f).is_file():
+            raise AppFusionError(f"{out / f}: not found (export the scan first)")
+    obj = load_truth(tdir)["object"]
+    tV, tF = obj["vertices"], obj["faces"]
+    geom = list(trimesh.load(out / "object.glb").geometry.values())[0]
+    V, F = np.asarray(geom.vertices, np.float64), np.asarray(geom.faces, np.int64)
+    _, prim, bary = _closest(tV, tF, V)
+    tn = np.einsum("pk,pki->pi", bary, obj["vertex_normals"][tF[prim]])
+    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-12)
+    vn = np.asarray(geom.vertex_normals, np.float64)
+    res = {"export_normal_err_deg": float(np.median(np.degrees(np.arccos(np.clip(np.abs(np.sum(tn * vn, 1)), 0, 1)))))}
+    tex = cv2.imread(str(out / "rho_d.exr"), cv2.IMREAD_UNCHANGED)
+    if tex is None or tex.ndim != 3:
+        raise AppFusionError(f"{out / 'rho_d.exr'}: not a readable RGB image")
+    tex = np.ascontiguousarray(tex[..., :3][..., ::-1], np.float32)
+    H, W = tex.shape[:2]
+    C = V[F].mean(1)
+    uv = np.asarray(geom.visual.uv, np.float64)[F].mean(1)              # OpenGL: v = 0 is the bottom row
+    mx = (uv[:, 0] * W - 0.5).astype(np.float32)[:, None]
+    my = ((1.0 - uv[:, 1]) * H - 0.5).astype(np.float32)[:, None]
+    ours = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0]
+    cp, prim, bary = _closest(tV, tF, C)
+    trd = np.einsum("pk,pki->pi", bary, obj["rho_d"][tF[prim]])
+    keep = cp[:, 2] > 0.01
+    res["export_rho_d_median_rel_err"] = (float(np.median(np.abs(ours[keep] - trd[keep]) / np.maximum(trd[keep], 1e-3)))
+                                          if keep.any() else float("nan"))
+    return res
 
 
 def truth_envmap(tdir: Path, name: str, n: int) -> np.ndarray:

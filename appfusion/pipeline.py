@@ -1883,8 +1883,10 @@ class ScanRunner:
                           notes="live scan (appfusion.pipeline.ScanRunner)")
 
     # -- export --------------------------------------------------------------------------------------
-    def export(self, out_dir=None, truth=None) -> dict[str, Path]:
-        """Write mesh, textures, environment map and report; returns the written paths."""
+    def export(self, out_dir=None, truth=None, session=None) -> dict[str, Path]:
+        """Write mesh, textures, environment map and report; returns the written paths. With ``truth``
+        (a dict of metrics, shown in the report) and a synthetic ``session``, the exported files'
+        own errors (:func:`appfusion.evaluate.export_error`) are added to ``truth``."""
         from .export import export_result
         from .report import write_report
 
@@ -1896,6 +1898,10 @@ class ScanRunner:
             files["envmap_npz"] = self.env.save_npz(out / "envmap.npz")
             files["envmap_exr"] = self.env.export_exr(out / "envmap.exr")
             files["envmap_hdr"] = self.env.export_hdr(out / "envmap.hdr")
+        if truth is not None and session is not None:
+            from .evaluate import export_error
+
+            truth.update({k: round(v, 5) for k, v in export_error(out, session).items()})
         figures = self._report_figures(out, res)
         figures.update(getattr(self, "_extra_figs", {}))
         tables = {"Time per stage": {k: v for k, v in self.timings.items()}}
@@ -1958,7 +1964,9 @@ def run_scan(session, out_dir, config: ScanConfig | None = None, envmap=None, ir
                 (out_dir / "report").mkdir(parents=True, exist_ok=True)
                 runner._extra_figs = {"Relit under the second environment map: capture vs reference":
                                       fig_pairs(pairs, out_dir / "report" / "relit.png")}
-        files = runner.export(out_dir, truth=truth_table)
+        files = runner.export(out_dir, truth=truth_table, session=session if truth_table is not None else None)
+        if truth_table is not None:
+            (out_dir / "metrics.json").write_text(json.dumps(truth_table, indent=2))
     elapsed = time.perf_counter() - t0
     lines = [f"scan of {session}: {len(res.positions)} points, {res.n_clusters} cluster(s), "
              f"alpha = {', '.join(f'{a:.3f}' for a in res.alpha)}; {elapsed:.1f} s",

@@ -465,6 +465,8 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
         assert sw["nodes_built"] <= sw["nodes_total"] and sw["max_rel_diff"] < 5e-3
     # the label's rho_s error also in units of its standard error (finite: every cluster has one)
     assert math.isfinite(e["evaluation"]["rho_s_err_sigmas"]) and e["evaluation"]["rho_s_err_sigmas"] >= 0
+    # the exported files' own errors (evaluate.export_error), also in metrics.json
+    assert 0 <= got["scan_export_normal_err_deg"] < 3 and 0 <= got["scan_export_rho_d_median_rel_err"] < 0.2
     out = tmp_path / "scan"
     assert (out / "report.html").exists() and (out / "result.npz").exists() and (out / "metrics.json").exists()
     assert S.cached_session(tmp_path / "sessions", "two-material", 16, (320, 240), 0)[1] == 0.0

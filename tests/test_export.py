@@ -118,6 +118,27 @@ def test_rho_d_texture_holds_the_points_detail_on_a_coarse_mesh(tmp_path):
     radial /= np.linalg.norm(radial, axis=1, keepdims=True)
     err = np.degrees(np.arccos(np.clip(np.einsum("vc,vc->v", geom.vertex_normals, radial), -1, 1)))
     assert np.median(err) < 0.05                            # inverse distance over 4 points: 0.41
+    # the same, measured by evaluate.export_error against a truth folder (a finer sphere, same stripes)
+    import json
+
+    from appfusion.errors import AppFusionError
+    from appfusion.evaluate import export_error
+
+    t = o3d.geometry.TriangleMesh.create_sphere(radius=0.05, resolution=60)
+    t.translate([0, 0, 0.05])
+    t.compute_vertex_normals()
+    tv = np.asarray(t.vertices)
+    tn = (tv - [0, 0, 0.05]) / 0.05
+    trd = np.stack([0.2 + 0.6 * (tn[:, 0] > 0), np.where(np.sin(40 * tn[:, 2]) > 0, 0.8, 0.1), np.full(len(tv), 0.5)], 1)
+    (tmp_path / "ses" / "truth").mkdir(parents=True)
+    np.savez(tmp_path / "ses" / "truth" / "object.npz", vertices=tv, faces=np.asarray(t.triangles), vertex_normals=tn,
+             rho_d=trd)
+    (tmp_path / "ses" / "truth" / "materials.json").write_text(json.dumps({"materials": []}))
+    e = export_error(tmp_path, tmp_path / "ses")
+    assert e["export_normal_err_deg"] < 0.05
+    assert e["export_rho_d_median_rel_err"] < 0.02
+    with pytest.raises(AppFusionError, match="object.glb: not found"):
+        export_error(tmp_path / "ses", tmp_path / "ses")
 
 
 def test_convergence_figure_marks_the_exported_values(tmp_path):

@@ -93,6 +93,9 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "scan_ir_pattern_heldout_cv": ("fraction", None, "lower"),     # IR emitter pattern map, held-out spread
     "scan_relit_interior_rel_rmse": ("fraction", None, "lower"),   # relit without the 1-px silhouette band (diagnostic)
     "scan_rho_s_err_sigmas": ("standard errors", None, "lower"),  # rho_s error over its own standard error (diagnostic)
+    # the exported files: the .glb's vertex normals, the rho_d map at the triangles' centroids (session 33)
+    "scan_export_normal_err_deg": ("deg", 3.0, "lower"),
+    "scan_export_rho_d_median_rel_err": ("fraction", 0.03, "lower"),
     # the matte scene (one material, no lobe): exported rho_s over its area (0: diffuse; no goal, 0 is right)
     "scan_matte_rho_s": ("rho_s", None, "lower"),
     "scan_matte_rho_d_median_rel_err": ("fraction", 0.03, "lower"),

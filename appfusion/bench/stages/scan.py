@@ -19,8 +19,9 @@ the synthetic scanner (``replay.synth``), and reports:
     ``scan_label_accuracy``, ``scan_alpha_cluster_rel_err``, ``scan_rho_d_median_rel_err``,
     ``scan_rho_s_rel_err``, ``scan_envmap_median_rel_err``; ``scan_relit_interior_rel_rmse``, the
     relit error without the pixels on either render's silhouette, a diagnostic with no goal of its
-    own; ``scan_rho_s_err_sigmas``, the rho_s error in units of its own standard error, likewise:
-    :mod:`appfusion.evaluate`). The per-stage metrics of the same names
+    own; ``scan_rho_s_err_sigmas``, the rho_s error in units of its own standard error, likewise;
+    ``scan_export_normal_err_deg`` and ``scan_export_rho_d_median_rel_err``, the exported ``.glb``'s
+    vertex normals and ``rho_d`` map themselves: :mod:`appfusion.evaluate`). The per-stage metrics of the same names
     without ``scan_`` stay measured by the stages' own generators; these are the same quantities after
     the whole chain.
 ``scan_ir_pattern_heldout_cv``
@@ -113,6 +114,8 @@ SCAN_METRICS = {
     "alpha_sharpest_rel_err": "scan_alpha_sharpest_rel_err",
     "relit_interior_rel_rmse": "scan_relit_interior_rel_rmse",
     "rho_s_err_sigmas": "scan_rho_s_err_sigmas",
+    "export_normal_err_deg": "scan_export_normal_err_deg",
+    "export_rho_d_median_rel_err": "scan_export_rho_d_median_rel_err",
 }
 #: ScanRunner methods timed per scan (stage name in the report)
 _TIMED = {"_stage_ir_calibration": "ir-calibration", "_stage_environment": "environment",
