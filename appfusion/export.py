@@ -279,8 +279,9 @@ def export_result(result: ScanResult, out_dir: str | os.PathLike, texture_size: 
         raise EstimationError("export: the scan result has no mesh (too few points for a surface?)")
     V, F = manifold_mesh(V, F)                               # UVAtlas needs a manifold mesh
     # vertex normals as the relighting shades them (points.NormalField: the nearest point's normal
-    # tilted by its gradient to the vertex); against the truth (median, degrees): demo 0.225 -> 0.080,
-    # pepper 0.348 -> 0.288, vase 0.339 -> 0.270 than inverse distance over 4 points (session 33)
+    # tilted by its gradient to the vertex). Median error against the truth, inverse distance over 4
+    # points -> the field (session 33): demo 0.225 -> 0.080 degrees, pepper 0.348 -> 0.288, vase
+    # 0.339 -> 0.270
     from .points import NormalField
 
     vn = NormalField(result.positions, result.normals)(V)
