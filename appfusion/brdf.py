@@ -1,14 +1,24 @@
-"""The engine's reflectance model (paper §3, Eq. 1): Lambertian plus isotropic Ward.
+"""The engine's reflectance model (paper §3, Eq. 1): Lambertian plus an isotropic specular lobe.
 
     f_r(w_i, w_o) = rho_d / pi + rho_s * f(alpha; w_i, w_o)
 
-with the original Ward (1992) isotropic lobe
+The paper's lobe, and the engine's default, is the original Ward (1992) isotropic lobe
 
     f(alpha; w_i, w_o) = exp(-tan^2(theta_h) / alpha^2) / (4 pi alpha^2 sqrt(cos(theta_i) cos(theta_o)))
 
-where theta_h is the angle between the half vector and the normal. Directions are unit vectors in the
-local frame (normal = +z) unless a normal is given. This module is the engine's own implementation;
-the synthetic scanner (``replay/synth``) has an independent one.
+where theta_h is the angle between the half vector and the normal. The model ladder's third rung
+(a cluster whose highlight has the long tail no Ward lobe has) is the GGX / Trowbridge-Reitz
+microfacet lobe (Walter et al. 2007) with the separable Smith shadowing term and no Fresnel factor,
+so that ``rho_s`` is a plain specular scale as for Ward:
+
+    f(alpha; w_i, w_o) = D(theta_h) G1(w_i) G1(w_o) / (4 cos(theta_i) cos(theta_o)),
+    D = alpha^2 / (pi cos^4(theta_h) (alpha^2 + tan^2(theta_h))^2),
+    G1(w) = 2 / (1 + sqrt(1 + alpha^2 tan^2(theta_w))).
+
+:data:`LOBES` names the lobes; :func:`lobe`, :func:`lobe_half` and :func:`lobe_retro` evaluate the
+one a cluster's model names. Directions are unit vectors in the local frame (normal = +z) unless a
+normal is given. This module is the engine's own implementation; the synthetic scanner
+(``replay/synth``) has an independent one.
 """
 
 from __future__ import annotations
@@ -17,6 +27,8 @@ import numpy as np
 
 #: smallest cosine treated as above the horizon
 COS_EPS = 1e-6
+#: the specular lobes the engine knows (a cluster's model is one of these, or "diffuse")
+LOBES = ("ward", "ggx")
 
 
 def ward(alpha, wi: np.ndarray, wo: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
@@ -36,16 +48,7 @@ def ward(alpha, wi: np.ndarray, wo: np.ndarray, n: np.ndarray | None = None) -> 
     (...) ndarray
         Lobe value; 0 where either direction is below the horizon.
     """
-    wi = np.asarray(wi, dtype=np.float64)
-    wo = np.asarray(wo, dtype=np.float64)
-    if n is None:
-        ci, co = wi[..., 2], wo[..., 2]
-    else:
-        ci, co = np.sum(wi * n, axis=-1), np.sum(wo * n, axis=-1)
-    h = wi + wo
-    hn = np.linalg.norm(h, axis=-1)
-    hn = np.where(hn > 0, hn, 1.0)
-    ch = (h[..., 2] if n is None else np.sum(h * n, axis=-1)) / hn
+    ci, co, ch = _cosines(wi, wo, n)
     return ward_half(alpha, ch, ci, co)
 
 
@@ -63,6 +66,81 @@ def ward_half(alpha, cos_h, cos_i, cos_o) -> np.ndarray:
 def ward_retro(alpha, cos_h) -> np.ndarray:
     """Ward lobe with w_i = w_o = h (the HBSAB convention of §5.1): exp(-tan^2/a^2) / (4 pi a^2 cos_h)."""
     return ward_half(alpha, cos_h, cos_h, cos_h)
+
+
+def ggx_d(alpha, cos_h) -> np.ndarray:
+    """GGX normal distribution ``D(theta_h)`` (1/sr), normalised so that ``int D cos(theta_h) dh = 1``;
+    0 at or below the horizon."""
+    a2 = np.asarray(alpha, dtype=np.float64) ** 2
+    cos_h = np.asarray(cos_h, dtype=np.float64)
+    c2 = np.clip(cos_h, COS_EPS, 1.0) ** 2
+    tan2 = (1.0 - c2) / c2
+    return np.where(cos_h > COS_EPS, a2 / (np.pi * c2 * c2 * (a2 + tan2) ** 2), 0.0)
+
+
+def ggx_g1(alpha, cos_w) -> np.ndarray:
+    """Smith masking ``G1 = 2 / (1 + sqrt(1 + alpha^2 tan^2 theta_w))`` of the GGX distribution."""
+    c2 = np.clip(np.asarray(cos_w, dtype=np.float64), COS_EPS, 1.0) ** 2
+    tan2 = (1.0 - c2) / c2
+    return 2.0 / (1.0 + np.sqrt(1.0 + np.asarray(alpha, dtype=np.float64) ** 2 * tan2))
+
+
+def ggx_half(alpha, cos_h, cos_i, cos_o) -> np.ndarray:
+    """GGX lobe from cosines (half vector, lighting, view to the normal): ``D G1 G1 / (4 cos_i cos_o)``, 1/sr."""
+    cos_i = np.asarray(cos_i, dtype=np.float64)
+    cos_o = np.asarray(cos_o, dtype=np.float64)
+    cos_h = np.asarray(cos_h, dtype=np.float64)
+    valid = (cos_i > COS_EPS) & (cos_o > COS_EPS) & (cos_h > COS_EPS)
+    ci, co = np.where(valid, cos_i, 1.0), np.where(valid, cos_o, 1.0)
+    val = ggx_d(alpha, np.where(valid, cos_h, 1.0)) * ggx_g1(alpha, ci) * ggx_g1(alpha, co) / (4.0 * ci * co)
+    return np.where(valid, val, 0.0)
+
+
+def ggx(alpha, wi: np.ndarray, wo: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
+    """GGX specular lobe f(alpha; w_i, w_o) (module docstring), 1/sr; arguments as :func:`ward`."""
+    ci, co, ch = _cosines(wi, wo, n)
+    return ggx_half(alpha, ch, ci, co)
+
+
+def ggx_retro(alpha, cos_h) -> np.ndarray:
+    """GGX lobe with w_i = w_o = h (the HBSAB convention of §5.1): ``D G1^2 / (4 cos_h^2)``."""
+    return ggx_half(alpha, cos_h, cos_h, cos_h)
+
+
+def _cosines(wi, wo, n):
+    """Cosines of w_i, w_o and their half vector to the normal (+z when ``n`` is None), (...) each."""
+    wi = np.asarray(wi, dtype=np.float64)
+    wo = np.asarray(wo, dtype=np.float64)
+    if n is None:
+        ci, co = wi[..., 2], wo[..., 2]
+    else:
+        ci, co = np.sum(wi * n, axis=-1), np.sum(wo * n, axis=-1)
+    h = wi + wo
+    hn = np.linalg.norm(h, axis=-1)
+    hn = np.where(hn > 0, hn, 1.0)
+    ch = (h[..., 2] if n is None else np.sum(h * n, axis=-1)) / hn
+    return ci, co, ch
+
+
+def _check_lobe(kind: str) -> str:
+    if kind not in LOBES:
+        raise ValueError(f"unknown specular lobe {kind!r}; the engine knows {', '.join(LOBES)}")
+    return kind
+
+
+def lobe(kind: str, alpha, wi: np.ndarray, wo: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
+    """The specular lobe named ``kind`` (:data:`LOBES`), 1/sr; arguments as :func:`ward`."""
+    return (ggx if _check_lobe(kind) == "ggx" else ward)(alpha, wi, wo, n)
+
+
+def lobe_half(kind: str, alpha, cos_h, cos_i, cos_o) -> np.ndarray:
+    """The lobe named ``kind`` from cosines (:func:`ward_half`, :func:`ggx_half`)."""
+    return (ggx_half if _check_lobe(kind) == "ggx" else ward_half)(alpha, cos_h, cos_i, cos_o)
+
+
+def lobe_retro(kind: str, alpha, cos_h) -> np.ndarray:
+    """The lobe named ``kind`` with w_i = w_o = h (:func:`ward_retro`, :func:`ggx_retro`)."""
+    return (ggx_retro if _check_lobe(kind) == "ggx" else ward_retro)(alpha, cos_h)
 
 
 def sample_ward(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
