@@ -378,6 +378,9 @@ class ClusterInfo:
         Ward fit of the merged HBSAB, None when it could not be fitted (see ``status``).
     status : str
         ``"fitted"`` or why not (``"insufficient data: ..."``).
+    fits : dict
+        ``lobe -> WardFit``: the fit of every lobe tried (``BRDFCut(lobes=...)``); ``fit`` is the one
+        :func:`appfusion.ward_fit.choose_lobe` kept, and ``fit.lobe`` names it.
     """
 
     label: int
@@ -386,6 +389,7 @@ class ClusterInfo:
     hbsab: HBSAB
     fit: WardFit | None
     status: str
+    fits: dict = field(default_factory=dict)
 
     @property
     def alpha(self) -> float | None:
@@ -507,6 +511,13 @@ class BRDFCut:
         Texel weight threshold of the Ward fits.
     diffuse : {"min", "fit"}
         Diffuse handling of the Ward fits (:func:`appfusion.ward_fit.fit_ward`).
+    lobes : tuple of str
+        The lobes each cluster's fit tries (:class:`appfusion.ward_fit.WardFitter`): ``("ward",)``
+        (default, the paper's) or ``("ward", "ggx")``, the model ladder's GGX rung, where a cluster's
+        ``fit.lobe`` says which :func:`appfusion.ward_fit.choose_lobe` kept. Every fit tries them
+        (the progressive ones too: on the stored ggx-sphere and demo scans a cluster's two fits took
+        1.6-1.9x the Ward fit's time, +0.04-0.1 s per cluster and call; :mod:`appfusion.ward_fit`).
+        The clusters' merge test (:meth:`_merge_alike`) compares their Ward fits.
     dtype : numpy dtype
         Storage type of the leaf HBSABs (float32 default).
     seed : int
@@ -521,7 +532,7 @@ class BRDFCut:
                  fit_min_weight: float = 1.0, diffuse: str = "fit", dtype=np.float32, seed: int = 0,
                  size: float | None = None, leaf_margin: float | None = 9.0, interior_k: int = 6,
                  interior_min_fraction: float = 0.3, emitter=None, merge_alpha_rel: float = 0.25,
-                 merge_rho_rel: float = 0.35, rim=None):
+                 merge_rho_rel: float = 0.35, rim=None, lobes: tuple = ("ward",)):
         P, Nn = check_oriented_points(positions, normals, "BRDF cut")
         self.positions, self.normals = P, Nn
         self.tree = build_tree(P, Nn, min_leaf=min_leaf, size=size)
@@ -556,6 +567,8 @@ class BRDFCut:
         self.fit_min_weight = float(fit_min_weight)
         self.diffuse = diffuse
         self.emitter = emitter
+        self.lobes = tuple(lobes)
+        WardFitter(lobes=self.lobes)                 # checks the names now, not at the first fit
         self.merge_alpha_rel = float(merge_alpha_rel)
         self.clip_sum, self.clip_n = 0.0, 0        # saturated samples' values (the sensor's clip level)
         self.merge_rho_rel = float(merge_rho_rel)
@@ -785,7 +798,10 @@ class BRDFCut:
         Returns labels, clusters, merges."""
         merged = 0
         while len(clusters) > 1:
-            fits = [(c.label, c.fit) for c in clusters if c.fit is not None]
+            # a cluster whose chosen lobe is GGX compares by its Ward fit: a GGX and a Ward alpha are
+            # not comparable
+            fits = [(c.label, c.fit if c.fit.lobe == "ward" else c.fits.get("ward", c.fit))
+                    for c in clusters if c.fit is not None]
             needle = [a for a, f in fits if _is_needle(f)]
             sound = [c for c in clusters if c.fit is not None and c.label not in needle]
             pair = None
@@ -936,13 +952,14 @@ class BRDFCut:
                         use = rung[c]
                         break
                 fitter = self._fitters.setdefault(c, WardFitter(self.fit_min_weight, self.diffuse,
-                                                                         emitter=self.emitter))
+                                                                         emitter=self.emitter, lobes=self.lobes))
                 fitter.clip = self.clip_sum / self.clip_n if self.clip_n else None
                 try:
                     wf = fitter.fit(use)
                     status = "fitted"
                 except EstimationError as e:
                     status = f"insufficient data: {e}"
+            fits = {} if wf is None else dict(self._fitters[c].fits)
             out.append(ClusterInfo(label=c, n_points=int(counts[c]), area=float(F[c].sum()), hbsab=hb,
-                                   fit=wf, status=status))
+                                   fit=wf, status=status, fits=fits))
         return out
