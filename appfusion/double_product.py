@@ -5,8 +5,8 @@ The RGB pass needs, per calibrated pixel ``L`` of a point with normal ``n`` seen
     L = rho_d D(n) + rho_s S(n, alpha, w_o)                                    (Eq. 5)
     S(n, alpha, w_o) = int L_i(w) f(alpha; w, w_o) (n.w)+ dw                   (double-product term)
 
-with ``f`` the isotropic Ward lobe (``appfusion.brdf``) and ``L_i`` the environment map, a
-(2, N, N, 3) radiance array in the world (marker) frame (``appfusion.octahedral``). ``D`` is in
+with ``f`` the isotropic Ward lobe (``appfusion.brdf``; GGX: see the last section) and ``L_i`` the
+environment map, a (2, N, N, 3) radiance array in the world (marker) frame (``appfusion.octahedral``). ``D`` is in
 :mod:`appfusion.diffuse_term`. This module precomputes S so that a sample costs 16 table reads.
 
 The double product, in the mirror frame
@@ -69,6 +69,38 @@ Measured on a 2 x 128^2 office environment (``tests/test_double_product.py``, ``
 --stage rgb``): S within 0.9 % RMS of brute-force quadrature over the map's texels for alpha in
 {0.06, 0.1, 0.2, 0.35} (r grid ~0.35 %, kernel grid ~0.3 %, texel discretisation ~0.15 %), 38 MB
 for those four alphas; the build time is in ``docs/rgb-pass.md``.
+
+GGX tables (the model ladder's third rung)
+------------------------------------------
+Tables are keyed by ``(lobe, alpha)``: ``DoubleProductTables(env, ward_alphas, lobes={"ggx": [...]})``
+or ``add_alpha(alpha, "ggx")``, and ``S(normals, w_o, alpha, lobe)`` with ``lobe`` a name or one per
+sample (log-alpha interpolation only between tables of one lobe). The GGX kernel
+(:func:`ggx_kernel_slices`, ``appfusion.brdf.ggx``: Trowbridge-Reitz D, separable Smith G1, no
+Fresnel) is ``K = D G1(n'.w') G1(cos t) / (4 sqrt(cos t))``, the same ``S sqrt(cos theta_o)``
+convention and lookup as Ward's. What differs is the long tail (the projected D has the CDF
+``tan^2 theta_h / (alpha^2 + tan^2 theta_h)``: 10 % beyond ``tan theta_h = 3 alpha``):
+
+* **cap** from the energy it holds (:func:`default_cap`): 0.25 % of the lobe outside at normal view,
+  ``2 atan(alpha sqrt(399))`` clipped to [0.35, 2.9] rad (alpha 0.08 / 0.15 / 0.3: 2.02 / 2.50 / 2.81
+  rad). Measured by brute force with and without the cap (2 x 128^2 map, views to 78 degrees), the lost
+  tail leaves 0.17 / 0.15 / 0.03 % RMS in S; Ward's cap rule (2.2 rad at most) would leave up to 1.8 %.
+* **stretched square** (:class:`CapSquare` ``stretch``, :func:`default_stretch`): 64^2 texels whose
+  polar angle grows as ``cap (q^u - 1) / (q - 1)``, ``q`` chosen so that pole texels are 0.25 alpha
+  (the peak sampled as finely as a Ward lobe's); the smooth tail gets texels ``q`` times wider
+  (alpha 0.08 / 0.15 / 0.3: q = 7.3 / 3.8 / 1.4, rim texels 0.15 / 0.14 / 0.10 rad). Kernel texel
+  averages over 2 x 2 sub-samples; the lighting is read at texel centres as for Ward.
+* **r grid** as a Ward lobe of 0.8 alpha (GGX's half maximum is at ``tan theta_h = 0.64 alpha``,
+  Ward's at 0.83 alpha), at least 49 nodes per side: 97 / 83 / 49.
+* **kernel grid**: Ward's rule with 4 more beta nodes (the tail reaches far from the pole, where a
+  rotation by the beta spacing moves it most): 0.15 has 1.1 % RMS error on (12, 17), 0.8 % on (12, 21).
+
+Measured (``tests/test_double_product.py``, 2 x 128^2 office map, 300 samples, eager tables): S within
+0.53 / 0.80 / 0.64 % RMS of brute-force quadrature at alpha 0.08 / 0.15 / 0.3 (0.58 % over all; bias
+-0.35 / -0.15 / +0.03 %); the kernel grid is the largest part (0.15 on (12, 32): 0.5 %). Sizes 27.7 /
+21.8 / 13.8 MB, eager builds 7.4 / 4.9 / 1.8 s (2 shared cores, noisy: 0.15 also measured 2.2 s);
+lazy tables compute only the nodes the samples need. Ward 0.15 + GGX 0.15 (one cluster on both rungs):
+34 MB with D, 9 s eager build. The four Ward alphas above with GGX 0.15 take 80 MB (the Ward four alone
+58 MB with these defaults), over the 64 MB budget.
 """
 
 from __future__ import annotations
@@ -85,11 +117,13 @@ import numpy as np
 import pywt
 
 from . import octahedral as octa
+from .brdf import LOBES
 from .diffuse_term import DiffuseTable, NodeGrid, envmap_check
 from .errors import AppFusionError
 
-__all__ = ["signed_frames", "CapSquare", "ward_kernel_slices", "haar2", "ihaar2",
-           "SparseCoeffs", "AlphaTable", "DoubleProductTables", "mirror_params", "default_r_res", "default_cap", "default_kernel_grid", "truncate"]
+__all__ = ["signed_frames", "CapSquare", "ward_kernel_slices", "ggx_kernel_slices", "kernel_slices", "check_lobe",
+           "haar2", "ihaar2", "SparseCoeffs", "AlphaTable", "DoubleProductTables", "mirror_params", "default_r_res",
+           "default_cap", "default_stretch", "default_kernel_grid", "truncate"]
 
 
 def signed_frames(d: np.ndarray, s: np.ndarray | float) -> np.ndarray:
@@ -128,14 +162,21 @@ class CapSquare:
         Cap half-angle, rad, in (0, pi).
     sub : int
         Sub-samples per side and texel (solid angles and kernel averages).
+    stretch : float
+        Radial stretch ``q >= 1`` (GGX squares): the polar angle is
+        ``theta = cap (q^u - 1) / (q - 1)`` of ``u = theta_oct / (pi/2)``, so texels are ``q`` times
+        wider (radially) at the rim than at the pole. 1 (default) is the linear scaling above.
     """
 
-    def __init__(self, res: int, cap: float, sub: int = 4):
+    def __init__(self, res: int, cap: float, sub: int = 4, stretch: float = 1.0):
         if res < 2 or res & (res - 1):
             raise AppFusionError(f"CapSquare: resolution must be a power of two >= 2, got {res}")
         if not 0 < cap < math.pi:
             raise AppFusionError(f"CapSquare: cap half-angle must be in (0, pi) rad, got {cap}")
+        if not (np.isfinite(stretch) and stretch >= 1.0):
+            raise AppFusionError(f"CapSquare: stretch must be >= 1, got {stretch}")
         self.res, self.cap, self.sub = int(res), float(cap), int(sub)
+        self.stretch = float(stretch)
         self.scale = self.cap / (math.pi / 2)
         self.directions = self._dirs(octa.texel_centers(res))                    # (R, R, 3)
         m = res * sub
@@ -147,51 +188,135 @@ class CapSquare:
         z = 1.0 - np.abs(x) - np.abs(y)
         j_oct = 0.5 * (x * x + y * y + z * z) ** -1.5 * (2.0 / m) ** 2        # dw_oct per sub-sample
         th_oct = np.arccos(np.clip(octa.hemi_decode(uv)[..., 2], -1, 1))
-        th = th_oct * self.scale
-        ratio = np.where(th_oct > 1e-9, np.sin(th) / np.maximum(np.sin(th_oct), 1e-300), self.scale)
-        w_sub = j_oct * self.scale * ratio
+        if self.stretch == 1.0:
+            th = th_oct * self.scale
+            ratio = np.where(th_oct > 1e-9, np.sin(th) / np.maximum(np.sin(th_oct), 1e-300), self.scale)
+            w_sub = j_oct * self.scale * ratio
+        else:                                   # dw = g'(t) sin(g(t)) / sin(t) dw_oct, theta = g(t)
+            th, dth = self._polar(th_oct)
+            ratio = np.where(th_oct > 1e-9, np.sin(th) / np.maximum(np.sin(th_oct), 1e-300), dth)
+            w_sub = j_oct * dth * ratio
         #: (R, R, sub*sub, 3) sub-sample directions and (R, R, sub*sub) their solid angles
         self.sub_directions = d_sub.reshape(res, sub, res, sub, 3).transpose(0, 2, 1, 3, 4).reshape(res, res, sub * sub, 3)
         self.sub_weights = w_sub.reshape(res, sub, res, sub).transpose(0, 2, 1, 3).reshape(res, res, sub * sub)
         #: (R, R) texel solid angles, sr
         self.solid_angles = self.sub_weights.sum(axis=-1)
 
+    def _polar(self, th_oct: np.ndarray):
+        """Polar angle ``theta = g(theta_oct)`` and ``g'(theta_oct)`` of the (stretched) mapping."""
+        if self.stretch == 1.0:
+            return th_oct * self.scale, np.full_like(th_oct, self.scale)
+        q = self.stretch
+        u = th_oct / (math.pi / 2)
+        k = self.cap / (q - 1.0)
+        e = np.power(q, u)
+        return k * (e - 1.0), k * math.log(q) * e / (math.pi / 2)
+
+    @property
+    def pole_step(self) -> float:
+        """Radial texel size at the pole, rad (``cap / (res/2)`` unstretched)."""
+        return float(self._polar(np.array([0.0]))[1][0]) * (math.pi / 2) / (self.res / 2)
+
     def _dirs(self, uv: np.ndarray) -> np.ndarray:
         d = octa.hemi_decode(uv)
-        th = np.arccos(np.clip(d[..., 2], -1, 1)) * self.scale
+        th = self._polar(np.arccos(np.clip(d[..., 2], -1, 1)))[0]
         rho = np.hypot(d[..., 0], d[..., 1])
         k = np.where(rho > 1e-12, np.sin(th) / np.maximum(rho, 1e-300), 0.0)
         return np.stack([d[..., 0] * k, d[..., 1] * k, np.cos(th)], axis=-1)
 
 
 @lru_cache(maxsize=32)
-def _cap_square(res: int, cap: float, sub: int) -> CapSquare:
-    return CapSquare(res, cap, sub)
+def _cap_square(res: int, cap: float, sub: int, stretch: float = 1.0) -> CapSquare:
+    return CapSquare(res, cap, sub, stretch)
 
 
-def default_cap(alpha: float) -> float:
-    """Cap half-angle (rad) of the mirror-frame square for roughness ``alpha``: ``clip(5 a + 0.1, 0.35, 2.2)``.
+#: GGX: fraction of the lobe's energy (normal view) left outside the cap (see :func:`default_cap`)
+GGX_TAIL = 0.0025
+#: GGX: largest cap half-angle, rad (the hemisphere of n reaches pi/2 + theta_o from r)
+GGX_CAP_MAX = 2.9
+#: GGX: radial texel size at the pole of the stretched square, in units of alpha
+GGX_POLE_STEP = 0.25
+#: GGX: sub-samples per side averaging the kernel over a texel
+GGX_SUB = 2
 
-    The Ward lobe ``exp(-tan^2 theta_h / alpha^2)`` is below 1e-4 of its peak beyond
-    ``theta_h = 3 alpha``, i.e. ~6 alpha from the mirror direction in the plane of incidence (less
-    across it); with 32^2 texels that keeps texels at ~0.4 alpha near the pole.
+
+def default_cap(alpha: float, lobe: str = "ward") -> float:
+    """Cap half-angle (rad) of the mirror-frame square for roughness ``alpha`` and ``lobe``.
+
+    Ward: ``clip(5 a + 0.1, 0.35, 2.2)``. The Ward lobe ``exp(-tan^2 theta_h / alpha^2)`` is below
+    1e-4 of its peak beyond ``theta_h = 3 alpha``, i.e. ~6 alpha from the mirror direction in the plane
+    of incidence (less across it); with 32^2 texels that keeps texels at ~0.4 alpha near the pole.
+
+    GGX: chosen from the energy the cap holds. The projected GGX distribution has the CDF
+    ``tan^2 theta_h / (alpha^2 + tan^2 theta_h)`` (10 % of it beyond ``tan theta_h = 3 alpha``); at
+    normal view a cap ``c`` around the mirror direction holds ``theta_h <= c / 2``, so the cap leaving
+    the fraction ``GGX_TAIL`` (0.25 %) outside is ``2 atan(alpha sqrt(1 / GGX_TAIL - 1))``, clipped to
+    [0.35, ``GGX_CAP_MAX`` = 2.9] rad (alpha 0.08: 2.02, 0.15: 2.50, 0.3: 2.81 rad). The S error the
+    lost tail leaves (brute-force quadrature with and without the cap, 2 x 128^2 office map, views up
+    to 78 degrees) is 0.17 / 0.15 / 0.03 % RMS at alpha 0.08 / 0.15 / 0.3 (a bias of the same size,
+    low); caps of 2.2 rad for all would leave 0.10 / 0.45 / 1.8 %.
     """
+    if check_lobe(lobe, "default_cap") == "ggx":
+        c = 2.0 * math.atan(alpha * math.sqrt(1.0 / GGX_TAIL - 1.0))
+        return float(np.clip(c, 0.35, GGX_CAP_MAX))
     return float(np.clip(5.0 * alpha + 0.1, 0.35, 2.2))
 
 
-def default_r_res(alpha: float, scale: float = 10.0) -> int:
-    """Nodes per side of the mirror-direction grid for ``alpha``: odd, ``~scale / alpha``, in [33, 97]."""
-    m = int(np.clip(round(scale / alpha), 33, 97))
+def default_stretch(alpha: float, cap: float, res: int, lobe: str = "ward") -> float:
+    """Radial stretch ``q`` of the mirror-frame square (:class:`CapSquare`) for ``lobe``.
+
+    Ward: 1 (linear). GGX: the smallest ``q >= 1`` whose pole texel is ``GGX_POLE_STEP * alpha`` rad
+    (``cap ln q / (q - 1) / (res / 2)``): the peak is sampled as finely as a Ward lobe's while the
+    long tail, where the kernel is smooth, gets texels up to ``q`` times wider.
+    """
+    if check_lobe(lobe, "default_stretch") == "ward":
+        return 1.0
+    want = GGX_POLE_STEP * alpha * (res / 2) / cap             # = ln q / (q - 1), decreasing in q
+    if want >= 1.0:
+        return 1.0
+    lo, hi = 1.0 + 1e-9, 1e6
+    for _ in range(100):                                       # bisection on log q
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if math.log(mid) / (mid - 1.0) > want else (lo, mid)
+    return float(round(hi, 4))
+
+
+def default_r_res(alpha: float, scale: float = 10.0, lobe: str = "ward") -> int:
+    """Nodes per side of the mirror-direction grid for ``alpha``: odd, ``~scale / alpha``, in [33, 97].
+
+    GGX's peak is narrower than Ward's of the same alpha (half maximum at ``tan theta_h = 0.64 alpha``
+    against ``0.83 alpha``): its grid is that of a Ward lobe of ``GGX_R_ALPHA * alpha``.
+    """
+    lo = 33
+    if check_lobe(lobe, "default_r_res") == "ggx":
+        alpha, lo = GGX_R_ALPHA * alpha, GGX_R_MIN
+    m = int(np.clip(round(scale / alpha), lo, 97))
     return m if m % 2 else m + 1
 
 
-def default_kernel_grid(alpha: float) -> tuple[int, int]:
+#: GGX: the r grid of a GGX lobe is that of a Ward lobe this many times narrower (see default_r_res)
+GGX_R_ALPHA = 0.8
+#: GGX: fewest r nodes per side (the cuspy peak blurs the map less than a Ward lobe of equal width)
+GGX_R_MIN = 49
+
+
+def default_kernel_grid(alpha: float, lobe: str = "ward") -> tuple[int, int]:
     """(n_theta, n_beta) of the kernel grid for ``alpha``: broad lobes change shape faster with the normal.
 
     ``(clip(10 + 16 alpha, 12, 16), clip(12 + 32 alpha, 16, 24))``; with exact mirror directions the
     kernel interpolation error of S is 0.44 % RMS at alpha = 0.08 on (12, 16) (0.63 % on (10, 12)).
+    GGX: the same n_theta and ``GGX_EXTRA_BETA`` (4) more beta nodes. Its long tail reaches far from
+    the pole, where rotating the kernel by the beta spacing moves it most: on (12, 17) the kernel
+    interpolation left 1.1 % RMS error of S at alpha = 0.15, 0.55 % on (10, 24), 0.5 % on (12, 32).
     """
-    return int(np.clip(round(10 + 16 * alpha), 12, 16)), int(np.clip(round(12 + 32 * alpha), 16, 24))
+    nt, nb = int(np.clip(round(10 + 16 * alpha), 12, 16)), int(np.clip(round(12 + 32 * alpha), 16, 24))
+    if check_lobe(lobe, "default_kernel_grid") == "ggx":
+        nb += GGX_EXTRA_BETA
+    return nt, nb
+
+
+#: GGX: beta nodes added to the Ward rule of :func:`default_kernel_grid`
+GGX_EXTRA_BETA = 4
 
 
 def truncate(c: np.ndarray, k: int) -> np.ndarray:
@@ -246,6 +371,57 @@ def ward_kernel_slices(alpha: float, square: CapSquare, thetas: np.ndarray, beta
             k = np.where(ok, np.exp(-np.maximum(tan2, 0.0) / a2) * np.sqrt(np.maximum(ci, 0.0)), 0.0)
             out[i, j] = (k * wts).sum(axis=-1) / (4 * math.pi * a2)
     return out
+
+
+def ggx_kernel_slices(alpha: float, square: CapSquare, thetas: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """Texel averages of the mirror-frame GGX kernel, shape (n_theta, n_beta, R, R), float64.
+
+    ``K(w') = D(theta_h) G1(n'.w') G1(cos t) / (4 sqrt(cos t))`` (``appfusion.brdf.ggx``: GGX /
+    Trowbridge-Reitz ``D``, separable Smith ``G1``, no Fresnel), with ``n'``, ``w'_o`` and ``h`` as in
+    :func:`ward_kernel_slices`, so that again ``f(alpha; w', w'_o) (n'.w')+ = K / sqrt(cos t)``.
+    ``D = alpha^2 / (pi (cos^2 theta_h (alpha^2 - 1) + 1)^2)`` with ``cos^2 theta_h = (n'.h)^2 / |h|^2``;
+    ``G1(c) = 2 / (1 + sqrt(1 + alpha^2 (1 - c^2) / c^2))``. Averaged over each texel's sub-samples.
+    """
+    d = square.sub_directions                                 # (R, R, s, 3)
+    wts = square.sub_weights / square.solid_angles[..., None]
+    out = np.empty((len(thetas), len(betas), square.res, square.res))
+    a2 = alpha * alpha
+
+    def g1(c):
+        c2 = np.maximum(c * c, 1e-300)
+        return 2.0 / (1.0 + np.sqrt(1.0 + a2 * (1.0 - c2) / c2))
+
+    for i, t in enumerate(thetas):
+        co = math.cos(t)
+        g_o = float(g1(np.float64(co))) / (4.0 * math.sqrt(co))
+        for j, b in enumerate(betas):
+            n = np.array([math.sin(t) * math.cos(b), math.sin(t) * math.sin(b), co])
+            wo = 2.0 * co * n - np.array([0.0, 0.0, 1.0])
+            ci = d @ n
+            h2 = 2.0 + 2.0 * (d @ wo)                         # |w' + w'_o|^2
+            nh = ci + co                                      # n'.(w' + w'_o)
+            ok = (ci > 0) & (nh > 0) & (h2 > 1e-12)
+            c2h = np.where(ok, nh * nh / np.where(ok, h2, 1.0), 1.0)
+            D = a2 / (math.pi * (c2h * (a2 - 1.0) + 1.0) ** 2)
+            k = np.where(ok, D * g1(np.where(ok, ci, 1.0)), 0.0) * g_o
+            out[i, j] = (k * wts).sum(axis=-1)
+    return out
+
+
+_KERNELS = {"ward": ward_kernel_slices, "ggx": ggx_kernel_slices}
+
+
+def check_lobe(lobe, where: str = "DoubleProductTables") -> str:
+    """The lobe name ``lobe`` if the tables know it (``appfusion.brdf.LOBES``), else an AppFusionError."""
+    if not isinstance(lobe, str) or lobe not in LOBES:
+        raise AppFusionError(f"{where}: unknown specular lobe {lobe!r}; S tables exist for {', '.join(LOBES)}")
+    return lobe
+
+
+def kernel_slices(lobe: str, alpha: float, square: CapSquare, thetas: np.ndarray, betas: np.ndarray) -> np.ndarray:
+    """Mirror-frame kernel slices (n_theta, n_beta, R, R) of the lobe named ``lobe`` (``"ward"``:
+    :func:`ward_kernel_slices`, ``"ggx"``: :func:`ggx_kernel_slices`)."""
+    return _KERNELS[check_lobe(lobe, "kernel_slices")](alpha, square, thetas, betas)
 
 
 # -- 2-D Haar transform and sparse coefficient vectors ------------------------------------------
@@ -522,7 +698,7 @@ class AlphaTable:
     Attributes
     ----------
     alpha : float
-        Ward roughness.
+        Roughness of the lobe.
     grid : NodeGrid
         Grid of mirror directions.
     cap : float
@@ -540,6 +716,8 @@ class AlphaTable:
         Build timings and sizes (``nodes_built``: mirror nodes computed so far).
     built : (2 m^2,) bool or None
         Lazy tables: which mirror nodes are computed (None: all are).
+    lobe : str
+        The specular lobe (``"ward"`` or ``"ggx"``, ``appfusion.brdf.LOBES``).
     """
 
     alpha: float
@@ -553,6 +731,7 @@ class AlphaTable:
     stats: dict = field(default_factory=dict)
     built: np.ndarray | None = None
     builder: _NodeBuilder | None = field(default=None, repr=False)
+    lobe: str = "ward"
 
     def __post_init__(self):
         self._lock = threading.Lock()
@@ -668,20 +847,31 @@ class AlphaTable:
 
 
 class DoubleProductTables:
-    """D and S tables of one environment map for a set of Ward roughnesses (paper §5.3).
+    """D and S tables of one environment map for a set of roughnesses of each lobe (paper §5.3).
+
+    S tables are keyed by ``(lobe, alpha)``: the paper's Ward lobe (``"ward"``, the default
+    everywhere) and the model ladder's GGX rung (``"ggx"``, ``appfusion.brdf.ggx``). :attr:`tables`
+    and :attr:`alphas` keep their Ward-only meaning (dict keyed by alpha, sorted alphas);
+    :attr:`all_tables`, :meth:`table` and :meth:`lobe_alphas` see every lobe.
 
     Parameters
     ----------
     env : (2, N, N, 3) ndarray
         Environment radiance in the world (marker) frame, ``appfusion.octahedral`` layout.
     alphas : sequence of float
-        Roughnesses to build S tables for (the clusters' alphas). :meth:`S` at another alpha between
-        two built ones interpolates linearly in log alpha, which is accurate only for close alphas
-        (within ~10 %); use :meth:`add_alpha` for an exact table.
+        Ward roughnesses to build S tables for (the clusters' alphas). :meth:`S` at another alpha
+        between two built ones (of the same lobe) interpolates linearly in log alpha, which is
+        accurate only for close alphas (within ~10 %); use :meth:`add_alpha` for an exact table.
+    lobes : mapping of str to sequence of float, optional
+        Further tables per lobe, e.g. ``{"ggx": [0.15]}`` (``"ward"`` entries join ``alphas``); an
+        unknown lobe name is an AppFusionError. Tables can also be added later with
+        ``add_alpha(alpha, lobe)``.
     res : int
-        Texels per side of the mirror-frame square (power of two; default 32).
-    n_theta, n_beta : int
-        Kernel grid: theta nodes over [0, theta_max] and beta nodes over [0, 2 pi).
+        Texels per side of the mirror-frame square (power of two; default 32). Ward squares of caps
+        wider than two map texels per square texel and all GGX squares use ``2 res``.
+    kernel_grid : (int, int), optional
+        Kernel grid (n_theta, n_beta): theta nodes over [0, theta_max] and beta nodes over [0, 2 pi);
+        default :func:`default_kernel_grid` per alpha and lobe.
     theta_max_deg : float
         Largest view angle to the normal tabulated, degrees (samples beyond are grazing: S = 0, invalid).
     light_keep : int or None
@@ -691,7 +881,8 @@ class DoubleProductTables:
     brdf_keep : int or None
         Haar coefficients kept per BRDF slice (of ``res^2``, scaled likewise); None keeps all.
     r_res : int or callable, optional
-        Nodes per side of the mirror-direction grid, or ``alpha -> int``; default :func:`default_r_res`.
+        Nodes per side of the mirror-direction grid, or ``alpha -> int`` (called with the alpha of
+        either lobe); default :func:`default_r_res` of the alpha and lobe.
     d_res : int
         Nodes per side of the D table's normal grid.
     light_sub : int, optional
@@ -707,15 +898,22 @@ class DoubleProductTables:
         that part; the values are identical to an eager build. False builds every node up front.
     """
 
-    def __init__(self, env: np.ndarray, alphas, *, res: int = 32, kernel_grid: tuple[int, int] | None = None,
+    def __init__(self, env: np.ndarray, alphas, *, lobes=None, res: int = 32,
+                 kernel_grid: tuple[int, int] | None = None,
                  theta_max_deg: float = 80.0, light_keep: int | None = None, brdf_keep: int | None = 512,
                  r_res=None, d_res: int = 65, light_sub: int | None = None, chunk: int = 512, threads: int = 2,
                  lazy: bool = True):
         t0 = time.perf_counter()
         self.env = envmap_check(env, "DoubleProductTables")
-        al = np.atleast_1d(np.asarray(alphas, dtype=np.float64)).ravel()
-        if not np.isfinite(al).all() or (al <= 0).any():        # none: D only (a diffuse-only scene)
-            raise AppFusionError(f"DoubleProductTables: alphas must be positive finite roughnesses, got {list(al)}")
+        want = [("ward", alphas)] + ([] if lobes is None else list(dict(lobes).items()))
+        keys = []
+        for lb, als in want:
+            check_lobe(lb)
+            al = np.atleast_1d(np.asarray(als, dtype=np.float64)).ravel()
+            if not np.isfinite(al).all() or (al <= 0).any():    # none: D only (a diffuse-only scene)
+                what = "alphas" if lb == "ward" and als is alphas else f"{lb} alphas"
+                raise AppFusionError(f"DoubleProductTables: {what} must be positive finite roughnesses, got {list(al)}")
+            keys += [(lb, float(a)) for a in np.unique(al)]
         if not 5.0 <= theta_max_deg <= 89.0:
             raise AppFusionError(f"DoubleProductTables: theta_max_deg must be in [5, 89], got {theta_max_deg}")
         if kernel_grid is not None and (kernel_grid[0] < 2 or kernel_grid[1] < 3):
@@ -734,40 +932,68 @@ class DoubleProductTables:
         td = time.perf_counter()
         self.diffuse = DiffuseTable(self.env, m=d_res)
         self.stats = {"diffuse_s": time.perf_counter() - td}
-        self.tables: dict[float, AlphaTable] = {}
-        for a in np.unique(al):
-            self.add_alpha(float(a))
+        #: every S table, keyed by (lobe, alpha), in build order
+        self.all_tables: dict[tuple[str, float], AlphaTable] = {}
+        for lb, a in dict.fromkeys(keys):
+            self.add_alpha(a, lb)
         self.build_seconds = time.perf_counter() - t0
 
     # -- building
-    def r_res_for(self, alpha: float) -> int:
+    def r_res_for(self, alpha: float, lobe: str = "ward") -> int:
+        """Nodes per side of the mirror grid of ``(lobe, alpha)`` (the ``r_res`` argument, or :func:`default_r_res`)."""
         if self._r_res is None:
-            return default_r_res(alpha)
+            return default_r_res(alpha, lobe=lobe)
         return int(self._r_res(alpha)) if callable(self._r_res) else int(self._r_res)
 
-    def add_alpha(self, alpha: float) -> AlphaTable:
-        """Build (or return the existing) S table of ``alpha``."""
+    def square_for(self, alpha: float, lobe: str = "ward") -> tuple[float, int, int, float]:
+        """Mirror-frame square of ``(lobe, alpha)``: ``(cap rad, res, kernel sub-samples, stretch)``.
+
+        Ward: cap :func:`default_cap`; ``2 res`` texels when ``res`` would make them wider than two of
+        the map's (2 x 128^2: caps over ~1.2 rad; the lighting and the kernel alias otherwise: 1.1 % vs
+        0.8 % RMS error of S at alpha = 0.2, 0.35), kernel averages over 4 x 4 sub-samples (2 x 2 on
+        64^2 squares: rough lobes are smooth there); linear. GGX: cap :func:`default_cap`, ``2 res``
+        texels, 2 x 2 sub-samples, stretched by :func:`default_stretch` (pole texels of
+        ``GGX_POLE_STEP * alpha``).
+        """
+        cap = default_cap(alpha, lobe)
+        if lobe == "ggx":
+            res = 2 * self.res
+            return cap, res, GGX_SUB, default_stretch(alpha, cap, res, lobe)
+        texel = math.sqrt(4 * math.pi / (2 * self.env.shape[1] ** 2))
+        res = self.res if cap / (self.res / 2) <= 2 * texel else 2 * self.res
+        return cap, res, 4 if res <= self.res else 2, 1.0
+
+    def add_alpha(self, alpha: float, lobe: str = "ward") -> AlphaTable:
+        """Build (or return the existing) S table of ``alpha`` for the lobe named ``lobe``.
+
+        Parameters
+        ----------
+        alpha : float
+            Roughness (> 0, dimensionless).
+        lobe : str
+            ``"ward"`` (default) or ``"ggx"`` (``appfusion.brdf.LOBES``); others are an AppFusionError.
+
+        Returns
+        -------
+        AlphaTable
+            The table (lazy unless the tables were built with ``lazy=False``).
+        """
+        check_lobe(lobe)
         alpha = float(alpha)
-        if alpha in self.tables:
-            return self.tables[alpha]
+        if (lobe, alpha) in self.all_tables:
+            return self.all_tables[(lobe, alpha)]
         if not (np.isfinite(alpha) and alpha > 0):
             raise AppFusionError(f"DoubleProductTables: alpha must be a positive roughness, got {alpha}")
         t0 = time.perf_counter()
-        cap = default_cap(alpha)
-        # wide caps (rough lobes) get twice the texels when theirs would span more than two of the map's
-        # (2 x 128^2: caps over ~1.2 rad): the lighting and the kernel alias otherwise (1.1 % vs 0.8 %
-        # RMS error of S at alpha = 0.2, 0.35)
-        texel = math.sqrt(4 * math.pi / (2 * self.env.shape[1] ** 2))
-        res = self.res if cap / (self.res / 2) <= 2 * texel else 2 * self.res
-        # kernel texel averages over 4 x 4 sub-samples (2 x 2 on 64^2 squares: rough lobes are smooth there)
-        sq = _cap_square(res, round(cap, 6), 4 if res <= self.res else 2)
+        cap, res, ksub, stretch = self.square_for(alpha, lobe)
+        sq = _cap_square(res, round(cap, 6), ksub, stretch)
         # lighting: texel integrals of the environment over ls x ls sub-samples (default 1)
         ls = max(1, int(self.light_sub or 1))
-        lsq = sq if ls == 1 else _cap_square(res * ls, round(cap, 6), 4)
-        nt, nb = default_kernel_grid(alpha) if self._kgrid is None else self._kgrid
+        lsq = sq if ls == 1 else _cap_square(res * ls, round(cap, 6), 4, stretch)
+        nt, nb = default_kernel_grid(alpha, lobe) if self._kgrid is None else self._kgrid
         thetas = np.linspace(0.0, self.theta_max, nt)
         betas = np.arange(nb) * (2 * np.pi / nb)
-        kern = ward_kernel_slices(alpha, sq, thetas, betas).reshape(-1, res, res)
+        kern = kernel_slices(lobe, alpha, sq, thetas, betas).reshape(-1, res, res)
         R2 = res * res
         scale_keep = R2 / (self.res * self.res)
         brdf = SparseCoeffs.from_dense(haar2(kern.astype(np.float32)).reshape(len(kern), -1),
@@ -780,7 +1006,7 @@ class DoubleProductTables:
             Bd = np.ascontiguousarray(ihaar2(brdf.dense()[..., 0].reshape(-1, res, res)).reshape(len(kern), R2).T,
                                       dtype=np.float32)
         tk = time.perf_counter()
-        grid = NodeGrid(self.r_res_for(alpha))
+        grid = NodeGrid(self.r_res_for(alpha, lobe))
         nodes = grid.directions.reshape(-1, 3)
         signs = grid.signs.reshape(-1)
         # texel (or sub-texel) centres and solid angles, sub-texels of one texel contiguous
@@ -796,55 +1022,81 @@ class DoubleProductTables:
         builder = _NodeBuilder(nodes, signs, dirs32, dw, Bd, res, ls, keep, self._sampler, self.chunk, self.threads)
         values = np.zeros((len(nodes), nt, nb, 3), np.float16)
         tab = AlphaTable(alpha, grid, cap, thetas, betas, values, brdf, scale=scale,
-                         built=np.zeros(len(nodes), bool), builder=builder)
-        tab.stats = {"kernel_s": tk - t0, "r_nodes": len(nodes), "r_res": grid.m, "cap_rad": cap, "res": res,
-                     "light_sub": ls, "light_keep": keep, "n_theta": nt, "n_beta": nb, "mb": tab.nbytes / 2**20,
+                         built=np.zeros(len(nodes), bool), builder=builder, lobe=lobe)
+        tab.stats = {"lobe": lobe, "kernel_s": tk - t0, "r_nodes": len(nodes), "r_res": grid.m, "cap_rad": cap,
+                     "res": res, "stretch": stretch, "light_sub": ls, "light_keep": keep, "n_theta": nt, "n_beta": nb,
+                     "mb": tab.nbytes / 2**20,
                      "light_mb_if_stored": len(nodes) * (keep * 8 + 12) / 2**20, "lazy": self.lazy, "nodes_built": 0,
                      "node_build_s": 0.0, "sample_s": 0.0, "haar_s": 0.0, "keep_s": 0.0, "dot_s": 0.0}
         if not self.lazy:
             tab.build_all()
         tab.stats["seconds"] = time.perf_counter() - t0
-        self.tables[alpha] = tab
+        self.all_tables[(lobe, alpha)] = tab
         return tab
 
     # -- queries
     @property
+    def tables(self) -> dict[float, AlphaTable]:
+        """The Ward tables keyed by alpha (a new dict; :attr:`all_tables` has every lobe's)."""
+        return {a: t for (lb, a), t in self.all_tables.items() if lb == "ward"}
+
+    def lobe_alphas(self, lobe: str = "ward") -> list[float]:
+        """Sorted alphas of the built tables of ``lobe``."""
+        check_lobe(lobe)
+        return sorted(a for lb, a in self.all_tables if lb == lobe)
+
+    @property
     def alphas(self) -> list[float]:
-        return sorted(self.tables)
+        """Sorted alphas of the Ward tables (:meth:`lobe_alphas` for another lobe)."""
+        return self.lobe_alphas("ward")
+
+    def table(self, alpha: float, lobe: str = "ward") -> AlphaTable:
+        """The built table of ``(lobe, alpha)`` (KeyError-free: an AppFusionError when there is none)."""
+        key = (check_lobe(lobe), float(alpha))
+        if key not in self.all_tables:
+            raise AppFusionError(f"DoubleProductTables: no {lobe} table at alpha {alpha:g}; add_alpha({alpha:g}, {lobe!r}) first")
+        return self.all_tables[key]
 
     def D(self, normals: np.ndarray) -> np.ndarray:
         """Diffuse term D(n) (..., 3) at unit normals (..., 3)."""
         return self.diffuse(normals)
 
-    def _bracket(self, alpha: float):
-        al = self.alphas
+    def _bracket(self, alpha: float, lobe: str = "ward"):
+        al = self.lobe_alphas(lobe)
+        name = "" if lobe == "ward" else f"{lobe} "
         if not al:
-            raise AppFusionError(f"DoubleProductTables: no S table built (alpha {alpha:g} asked for); "
+            raise AppFusionError(f"DoubleProductTables: no {name}S table built (alpha {alpha:g} asked for); "
                                  "add_alpha first")
-        if alpha in self.tables:
-            return [(self.tables[alpha], 1.0)]
+        if (lobe, alpha) in self.all_tables:
+            return [(self.all_tables[(lobe, alpha)], 1.0)]
         if alpha < al[0] or alpha > al[-1]:
-            raise AppFusionError(f"DoubleProductTables: alpha {alpha:g} is outside the built range "
-                                 f"[{al[0]:g}, {al[-1]:g}]; add_alpha({alpha:g}) first")
+            raise AppFusionError(f"DoubleProductTables: alpha {alpha:g} is outside the built {name}range "
+                                 f"[{al[0]:g}, {al[-1]:g}]; add_alpha({alpha:g}" + (")" if lobe == "ward" else f", {lobe!r})")
+                                 + " first")
         i = int(np.searchsorted(al, alpha))
         a0, a1 = al[i - 1], al[i]
         t = (math.log(alpha) - math.log(a0)) / (math.log(a1) - math.log(a0))
-        return [(self.tables[a0], 1.0 - t), (self.tables[a1], t)]
+        return [(self.all_tables[(lobe, a0)], 1.0 - t), (self.all_tables[(lobe, a1)], t)]
 
-    def S(self, normals: np.ndarray, w_o: np.ndarray, alpha) -> np.ndarray:
-        """Double-product term S(n, alpha, w_o) (P, 3), vectorised over samples.
+    def S(self, normals: np.ndarray, w_o: np.ndarray, alpha, lobe="ward") -> np.ndarray:
+        """Double-product term S(n, alpha, w_o) (P, 3), vectorised over samples (paper §5.3, Eq. 4-5).
 
         Parameters
         ----------
         normals, w_o : (P, 3) ndarray
             Unit normals and unit directions towards the camera, world frame.
         alpha : float or (P,) ndarray
-            Roughness per sample (each value built, or between two built ones).
+            Roughness per sample (each value built, or between two built ones of its lobe).
+        lobe : str or (P,) array of str
+            Specular lobe per sample, ``"ward"`` (default) or ``"ggx"``. Samples are grouped by
+            (lobe, alpha); an alpha between two built ones interpolates in log alpha between the two
+            tables of its own lobe.
 
         Returns
         -------
         (P, 3) float32
-            S; 0 where ``n.w_o < cos(theta_max)`` (grazing or back-facing; see :meth:`valid`).
+            S, in the environment's radiance units (``f`` in 1/sr times radiance times sr); 0 where
+            ``n.w_o < cos(theta_max)`` (grazing or back-facing; see :meth:`valid`).
         """
         n = np.asarray(normals, dtype=np.float32).reshape(-1, 3)
         wo = np.asarray(w_o, dtype=np.float32).reshape(-1, 3)
@@ -852,12 +1104,31 @@ class DoubleProductTables:
             raise AppFusionError(f"DoubleProductTables.S: normals {n.shape} and w_o {wo.shape} differ in shape")
         a = np.broadcast_to(np.asarray(alpha, dtype=np.float64), (len(n),))
         out = np.zeros((len(n), 3), np.float32)
-        uniq = np.unique(a)
-        for av in uniq:
-            sel = slice(None) if len(uniq) == 1 else np.flatnonzero(a == av)
-            for tab, wt in self._bracket(float(av)):
-                v = tab.lookup(n[sel], wo[sel])
-                out[sel] += v if wt == 1.0 else np.float32(wt) * v
+        if isinstance(lobe, str):
+            groups = [(check_lobe(lobe), None)]
+        else:
+            lb = np.asarray(lobe)
+            if lb.ndim == 0:
+                groups = [(check_lobe(str(lb)), None)]
+            else:
+                if lb.shape != (len(n),):
+                    raise AppFusionError(f"DoubleProductTables.S: lobe must be a name or {len(n)} names, got shape {lb.shape}")
+                names = np.unique(lb)
+                for nm in names:
+                    check_lobe(str(nm))
+                groups = [(str(names[0]), None)] if len(names) == 1 else \
+                    [(str(nm), np.flatnonzero(lb == nm)) for nm in names]
+        for name, rows in groups:
+            ag = a if rows is None else a[rows]
+            uniq = np.unique(ag)
+            for av in uniq:
+                if rows is None:
+                    sel = slice(None) if len(uniq) == 1 else np.flatnonzero(ag == av)
+                else:
+                    sel = rows if len(uniq) == 1 else rows[ag == av]
+                for tab, wt in self._bracket(float(av), name):
+                    v = tab.lookup(n[sel], wo[sel])
+                    out[sel] += v if wt == 1.0 else np.float32(wt) * v
         return out
 
     def valid(self, normals: np.ndarray, w_o: np.ndarray) -> np.ndarray:
@@ -867,14 +1138,20 @@ class DoubleProductTables:
 
     @property
     def nbytes(self) -> int:
-        """Bytes of all tables kept (D table, S tables, BRDF tables)."""
-        return int(self.diffuse.nbytes + sum(t.nbytes for t in self.tables.values()))
+        """Bytes of all tables kept (D table, S tables and BRDF tables of every lobe)."""
+        return int(self.diffuse.nbytes + sum(t.nbytes for t in self.all_tables.values()))
 
     def report(self) -> dict:
         """Sizes and timings: ``mb``, ``build_s`` (construction), ``diffuse_s``, ``node_build_s`` (mirror nodes
-        computed so far, lazily or not), ``nodes_built`` / ``nodes_total`` and per-alpha ``stats``."""
+        computed so far, lazily or not), ``nodes_built`` / ``nodes_total`` over every lobe's tables;
+        per-table ``stats`` under ``alphas`` (Ward, keyed ``str(alpha)`` as before) and ``lobes``
+        (``{lobe: {str(alpha): stats}}``, every lobe)."""
+        tabs = self.all_tables.values()
+        lobes: dict[str, dict] = {}
+        for (lb, a), t in self.all_tables.items():
+            lobes.setdefault(lb, {})[str(a)] = t.stats
         return {"mb": self.nbytes / 2**20, "build_s": self.build_seconds, "diffuse_s": self.stats["diffuse_s"],
-                "node_build_s": sum(t.stats.get("node_build_s", 0.0) for t in self.tables.values()),
-                "nodes_built": sum(t.stats.get("nodes_built", 0) for t in self.tables.values()),
-                "nodes_total": sum(t.grid.size for t in self.tables.values()), "lazy": self.lazy,
-                "alphas": {str(a): t.stats for a, t in self.tables.items()}}
+                "node_build_s": sum(t.stats.get("node_build_s", 0.0) for t in tabs),
+                "nodes_built": sum(t.stats.get("nodes_built", 0) for t in tabs),
+                "nodes_total": sum(t.grid.size for t in tabs), "lazy": self.lazy,
+                "alphas": {str(a): t.stats for a, t in self.tables.items()}, "lobes": lobes}

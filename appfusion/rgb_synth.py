@@ -116,7 +116,8 @@ def brute_force_D(env: np.ndarray, normals: np.ndarray, chunk: int = 256) -> np.
     return out
 
 
-def brute_force_S(env: np.ndarray, normals: np.ndarray, alpha, w_o: np.ndarray, chunk: int = 64) -> np.ndarray:
+def brute_force_S(env: np.ndarray, normals: np.ndarray, alpha, w_o: np.ndarray, chunk: int = 64,
+                  lobe: str = "ward") -> np.ndarray:
     """S = sum_t L_t f(alpha; w_t, w_o) max(n.w_t, 0) dw_t over all env texels (Eq. 4); (P, 3).
 
     Parameters
@@ -126,7 +127,10 @@ def brute_force_S(env: np.ndarray, normals: np.ndarray, alpha, w_o: np.ndarray, 
     normals, w_o : (P, 3) ndarray
         Unit normals and unit view directions (towards the camera), world frame.
     alpha : float or (P,) ndarray
-        Ward roughness per sample.
+        Roughness per sample.
+    lobe : {"ward", "ggx"}
+        The specular lobe (:data:`appfusion.brdf.LOBES`); GGX is evaluated with
+        :func:`appfusion.brdf.ggx_half` on every texel.
 
     Notes
     -----
@@ -138,6 +142,19 @@ def brute_force_S(env: np.ndarray, normals: np.ndarray, alpha, w_o: np.ndarray, 
     w_o = np.asarray(w_o, dtype=np.float64).reshape(-1, 3)
     alpha = np.broadcast_to(np.asarray(alpha, dtype=np.float64), (len(normals),))
     out = np.zeros((len(normals), 3))
+    if lobe == "ggx":
+        from .brdf import ggx_half
+
+        for s in range(0, len(normals), chunk):
+            n, wo, a = normals[s:s + chunk], w_o[s:s + chunk], alpha[s:s + chunk, None]
+            co = np.sum(n * wo, axis=1)[:, None]
+            ci = n @ dirs.T
+            h2 = 2.0 + 2.0 * (wo @ dirs.T)
+            ch = np.where(h2 > 1e-12, (ci + co) / np.sqrt(np.maximum(h2, 1e-12)), 0.0)
+            out[s:s + chunk] = (ggx_half(a, ch, ci, np.broadcast_to(co, ci.shape)) * np.maximum(ci, 0.0)) @ lw
+        return out
+    if lobe != "ward":
+        raise ValueError(f"brute_force_S: unknown lobe {lobe!r} (ward or ggx)")
     for s in range(0, len(normals), chunk):
         n, wo, a = normals[s:s + chunk], w_o[s:s + chunk], alpha[s:s + chunk, None]
         co = np.sum(n * wo, axis=1)[:, None]

@@ -69,6 +69,7 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "rho_d_dark_bias": ("fraction", 0.03, "lower"),            # median signed rho_d error of channels near black
     "rho_s_rel_err": ("fraction", 0.05, "lower"),
     "double_product_rel_err": ("fraction", 0.01, "lower"),
+    "double_product_ggx_rel_err": ("fraction", 0.01, "lower"),     # the GGX rung's tables (alpha 0.15)
     "relit_rel_rmse": ("fraction", 0.05, "lower"),
     "fps_tracking_fusion": ("fps", 15.0, "higher"),
     "fps_ir_update": ("fps", 30.0, "higher"),
