@@ -26,9 +26,10 @@ The RGB pass (§5.3) adds the resulting corrections to Eq. 5's terms:
     S   = S(n, alpha, w_o) + dS,  dS = int_{lower} (L_plane(p, w) - L_env(w)) f(alpha; w, w_o) (n.w)+ dw
 
 ``dD`` once per point (octahedral quadrature of the paper plus exact small-patch integration of the
-circles); ``dS`` per sample by stratified importance sampling of the Ward lobe (only for samples whose
-lobe reaches below the horizon), plus uniform samples of the white circles a broad lobe may reach,
-combined with the lobe's by multiple importance sampling. Visibility from the point (the object occluding its own view of the
+circles; it does not depend on the lobe); ``dS`` per sample by stratified importance sampling of the
+sample's lobe, Ward (half vector, Walter 2005) or GGX (visible normals, Heitz 2018; the model ladder's
+third rung), only for samples whose lobe reaches below the horizon, plus uniform samples of the white
+circles a broad lobe may reach, combined with the lobe's by multiple importance sampling. Visibility from the point (the object occluding its own view of the
 plane) is ignored, as everywhere in the paper.
 """
 
@@ -40,8 +41,9 @@ import math
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import COS_EPS, local_frame, sample_ward, ward
+from .brdf import COS_EPS, ggx_d, ggx_g1, ggx_half, local_frame, sample_ward
 from .errors import AppFusionError
+from .relight import _ggx_rows, _lobe_rows, sample_ggx
 
 __all__ = ["SupportPlaneLight", "paper_radiance_from_env"]
 
@@ -129,8 +131,15 @@ class SupportPlaneLight:
     """
 
     #: a lobe (2 atan(alpha), radians) narrower than this times a circle's angular radius keeps lobe
-    #: sampling alone for it; broader ones add area samples of the disc (:meth:`delta_S`)
+    #: sampling alone for it; broader ones add area samples of the disc (:meth:`delta_S`). The same
+    #: rule for GGX, whose core (half maximum) is 0.77 times Ward's at the same alpha and whose tail
+    #: the lobe samples cover anyway (the choice moves noise, never the mean)
     MIS_LOBE_TO_DISC = 1.5
+    #: GGX's half-vector tangent (in units of alpha) beyond which exp(-4) = 1.8 % of its ``D cos``
+    #: mass lies (``tan^2 = alpha^2 (e^4 - 1)``), as for Ward at ``tan = 2 alpha``: a GGX sample gets a
+    #: correction where its mirror ray is within ``2 atan(7.32 alpha)`` of the horizon or below
+    #: (Ward: ``4 atan(alpha)``). Far wider than Ward's: the long tail is why GGX is a rung
+    GGX_TAIL = float(np.sqrt(np.expm1(4.0)))
 
     def __init__(self, env, centres, radii, paper, circle_radiance=1.0, extent_m: float = 0.45,
                  n_quad: int = 16):
@@ -335,7 +344,7 @@ class SupportPlaneLight:
 
     def delta_S(self, points: np.ndarray, normals: np.ndarray, wo: np.ndarray, alpha, n_samples: int = 16,
                 seed: int = 0, n_samples_circle: int = 16, circle_samples: int = 4,
-                reference: bool = False) -> np.ndarray:
+                reference: bool = False, lobe=None) -> np.ndarray:
         """``dS`` (M, 3): the lobe's view of the plane minus its view of the map's lower hemisphere.
 
         Parameters
@@ -343,11 +352,11 @@ class SupportPlaneLight:
         points, normals, wo : (M, 3) ndarray
             Sample points (marker frame, m), unit normals, unit directions to the camera.
         alpha : float or (M,) ndarray
-            Ward roughness per sample.
+            Roughness of each sample's lobe.
         n_samples : int
             Lobe samples per sample: a stratified sqrt(n) x sqrt(n) pattern of Ward half-vector
-            sampling, rotated at random per sample (unbiased; the noise averages over a point's
-            views and a cluster's points like the sensor's).
+            sampling (GGX: of its visible normals, weight ``G1(w_i)``), rotated at random per sample
+            (unbiased; the noise averages over a point's views and a cluster's points like the sensor's).
         circle_samples : int
             Area samples of each white circle a lobe may reach (the mirror ray within the circle's
             angular radius plus three lobe widths of its centre), combined with the lobe samples by
@@ -364,14 +373,24 @@ class SupportPlaneLight:
             Run the original per-ray implementation (:meth:`_delta_S_mc_reference`, the
             ``circle_samples=0`` scheme). With ``circle_samples=0`` the fast path draws the same random
             numbers and agrees with it to float32 rounding (tests).
+        lobe : None, str or (M,) array_like of str
+            Each sample's specular lobe, "ward" or "ggx" (:data:`appfusion.brdf.LOBES`; "diffuse"
+            counts as "ward"). None: all Ward (the same numbers as without GGX support).
 
         Only samples whose mirror direction lies within ~4 lobe widths of the horizon or below get a
-        correction; the others are 0.
+        correction (Ward: ``4 atan(alpha)``; GGX: ``2 atan(GGX_TAIL alpha)``, its long tail); the
+        others are 0.
+
+        Returns
+        -------
+        (M, 3) ndarray
+            ``dS`` in white units (radiance x 1/sr x sr), to add to Eq. 5's ``S`` (paper §5.3).
         """
         p = np.asarray(points, np.float64).reshape(-1, 3)
         n = np.asarray(normals, np.float64).reshape(-1, 3)
         v = np.asarray(wo, np.float64).reshape(-1, 3)
         al = np.broadcast_to(np.asarray(alpha, np.float64), (len(p),))
+        gx = _ggx_rows(lobe, len(p), "delta_S")                             # (M,) bool or None
         out = np.zeros((len(p), 3))
         if len(p) == 0:
             return out
@@ -379,6 +398,9 @@ class SupportPlaneLight:
         rz = 2 * cos_o * n[:, 2] - v[:, 2]                                   # mirror ray's z
         atan_a = np.arctan(al.astype(np.float32))
         reach = np.sin(np.minimum(4 * atan_a, np.float32(np.pi / 2)))
+        if gx is not None:
+            tail = 2 * np.arctan(np.float32(self.GGX_TAIL) * al.astype(np.float32))
+            reach = np.where(gx, np.sin(np.minimum(tail, np.float32(np.pi / 2))), reach)
         i = np.flatnonzero((rz < reach) & (cos_o > 1e-3) & (p[:, 2] > 0))
         if len(i) == 0:
             return out
@@ -389,6 +411,11 @@ class SupportPlaneLight:
         co2 = 2 * cos_o[i]
         rx, ry, rz = ((co2 * n[i, c] - v[i, c]).astype(f32) for c in range(3))     # mirror rays (m,)
         w3 = 3 * atan_a[i] + f32(0.02)
+        if gx is not None:
+            # a GGX lobe's tail reaches a circle from far off: rare lobe rays that hit one (20 times the
+            # paper) made dS heavy-tailed (a glossy sphere's underside split off as "less specular" by the
+            # regression dilution), so GGX lobes area-sample every circle within their tail's reach
+            w3 = np.where(gx[i], np.minimum(tail[i], f32(np.pi)) + f32(0.02), w3).astype(f32)
         near_c = np.empty((len(self.radii), len(i)), bool)                  # (C, m)
         sharp_c = np.empty((len(self.radii), len(i)), bool)                 # lobe narrower than the disc
         lobe = 2 * atan_a[i]                                                 # ~ the lobe's angular radius
@@ -405,25 +432,34 @@ class SupportPlaneLight:
             # the others sample their discs too
             sharp = (near_c & sharp_c).any(axis=0)
             near_c[:, sharp] = False
-            self._delta_S_mc(p, n, v, al, i[sharp], max(n_samples, n_samples_circle), rng, out)
+            self._delta_S_mc(p, n, v, al, i[sharp], max(n_samples, n_samples_circle), rng, out, ggx=gx)
             i = i[~sharp]
             near_c = near_c[:, ~sharp]
         if reference or circle_samples <= 0:
             near = near_c.any(axis=0)
-            self._delta_S_mc(p, n, v, al, i[~near], n_samples, rng, out, reference)
-            self._delta_S_mc(p, n, v, al, i[near], max(n_samples, n_samples_circle), rng, out, reference)
+            self._delta_S_mc(p, n, v, al, i[~near], n_samples, rng, out, reference, ggx=gx)
+            self._delta_S_mc(p, n, v, al, i[near], max(n_samples, n_samples_circle), rng, out, reference, ggx=gx)
             return out
         k = max(int(round(math.sqrt(n_samples))), 1)
         k2 = max(int(round(math.sqrt(circle_samples))), 1)
         bits = np.zeros(len(i), np.int64)                                     # (m,) circles with area samples
         for c in range(len(near_c)):
             bits |= near_c[c].astype(np.int64) << c
-        self._delta_S_mc(p, n, v, al, i, k * k, rng, out, mis=(bits, k2 * k2))
+        self._delta_S_mc(p, n, v, al, i, k * k, rng, out, mis=(bits, k2 * k2), ggx=gx)
         pc, ps = np.nonzero(near_c)                                           # (circle, sample) pairs
         if len(ps):
             s = i[ps]
             ru, rw = self._rotations(rng, len(s), k2 * k2)
-            dS = self._circle_mc(*(np.take(x, s, axis=0) for x in (p, n, v, al)), pc, k2, ru, rw, k * k)
+            args = [np.take(x, s, axis=0) for x in (p, n, v, al)]
+            gs = None if gx is None else gx[s]
+            if gs is None or not gs.any():
+                dS = self._circle_mc(*args, pc, k2, ru, rw, k * k)
+            else:
+                dS = np.empty((len(s), 3))
+                for sel, lb in ((~gs, False), (gs, True)):
+                    if sel.any():
+                        dS[sel] = self._circle_mc(*(x[sel] for x in args), pc[sel], k2, ru[sel], rw[sel], k * k,
+                                                  ggx=lb)
             for c in range(3):
                 out[:, c] += np.bincount(s, weights=dS[:, c], minlength=len(p))
         return out
@@ -440,8 +476,9 @@ class SupportPlaneLight:
             r2[s:s + m] = rng.random(m)
         return r1, r2
 
-    def _delta_S_mc(self, p, n, v, al, idx, n_samples, rng, out, reference: bool = False, mis=None) -> None:
-        """Stratified Ward lobe sampling of ``dS`` for the samples ``idx`` (written into ``out``).
+    def _delta_S_mc(self, p, n, v, al, idx, n_samples, rng, out, reference: bool = False, mis=None,
+                    ggx=None) -> None:
+        """Stratified lobe sampling of ``dS`` for the samples ``idx`` (written into ``out``).
 
         ``k = round(sqrt(n_samples))``; sample ``m`` takes the ``k x k`` half vectors
         ``u1 = (i + 0.5 + r1_m) / k mod 1``, ``u2 = (j + 0.5) / k + r2_m mod 1`` of Walter's Ward
@@ -450,21 +487,50 @@ class SupportPlaneLight:
         original per-ray implementation (:meth:`_delta_S_mc_reference`) on the same shifts. ``mis``:
         ``(bits, n2)``, per sample of ``idx`` the circles (bit c) that also get ``n2`` area samples
         (:meth:`_circle_mc`); a ray that hits one of them weighs the circle's excess over the paper by
-        the power heuristic ``(k^2 p_lobe)^2 / ((k^2 p_lobe)^2 + (n2 p_area)^2)``.
+        the power heuristic ``(k^2 p_lobe)^2 / ((k^2 p_lobe)^2 + (n2 p_area)^2)``. ``ggx``: (M,) bool
+        over all samples (None: none), the samples whose lobe is GGX: the same ``(u1, u2)`` strata
+        drive its visible-normal sampling (:meth:`_lobe_mc_ggx`).
         """
         if len(idx) == 0:
             return
         k = max(int(round(math.sqrt(n_samples))), 1)
         r1, r2 = self._rotations(rng, len(idx), k * k)
         if reference:
-            self._delta_S_mc_reference(p, n, v, al, idx, k, r1, r2, out)
+            self._delta_S_mc_reference(p, n, v, al, idx, k, r1, r2, out, ggx)
             return
         chunk = max(32768 // (k * k), 64)                                     # ~32k lobe rays at a time
         P, N, V, A = (np.take(x, idx, axis=0) for x in (p, n, v, al))
+        G = None if ggx is None else ggx[idx]
         for s in range(0, len(idx), chunk):
             c = slice(s, s + chunk)
             mj = None if mis is None else (mis[0][c], mis[1])
-            out[idx[c]] = self._lobe_mc(P[c], N[c], V[c], A[c], k, r1[c], r2[c], mj)
+            if G is None or not G[c].any():
+                out[idx[c]] = self._lobe_mc(P[c], N[c], V[c], A[c], k, r1[c], r2[c], mj)
+                continue
+            gc = G[c]
+            for sel, est in ((~gc, self._lobe_mc), (gc, self._lobe_mc_ggx)):
+                if sel.any():
+                    ms = None if mj is None else (mj[0][sel], mj[1])
+                    out[idx[c][sel]] = est(P[c][sel], N[c][sel], V[c][sel], A[c][sel], k, r1[c][sel], r2[c][sel], ms)
+
+    def _mis_excess(self, mis, smp, hit, hc, exc, t, p, K, p_lobe_of):
+        """The lobe rays' share of a circle's excess that the circle's area samples carry instead.
+
+        ``mis = (bits, n2)`` as in :meth:`_delta_S_mc`; ``hit`` (h,) the rays (of the flat ray arrays)
+        that hit circle ``hc`` at distance ``t`` with excess radiance ``exc`` (3, h); ``smp`` the sample of
+        each ray; ``K`` lobe rays per sample and ``p_lobe_of(hit, hs)`` the lobe pdf of those rays. For
+        the rays whose circle is area-sampled: their indices and ``(1 - w_lobe) exc`` (3, u) with the power
+        heuristic ``w_lobe = (K p_lobe)^2 / ((K p_lobe)^2 + (n2 p_area)^2)`` (Veach 1997 §9.2); None if none."""
+        bits, n2 = mis
+        hs = smp[hit]
+        use = (bits[hs] >> hc) & 1 == 1
+        if not use.any():
+            return None
+        hit, hs, hc, exc = hit[use], hs[use], hc[use], exc[:, use]
+        p_lobe = p_lobe_of(hit, hs)
+        p_area = t[hit].astype(np.float64) ** 3 / (np.pi * self.radii[hc] ** 2 * p[hs, 2])
+        w_lobe = (K * p_lobe) ** 2 / ((K * p_lobe) ** 2 + (n2 * p_area) ** 2)
+        return hit, (1.0 - w_lobe) * exc
 
     def _lobe_mc(self, p, n, v, a, k, r1, r2, mis=None) -> np.ndarray:
         """The ``k x k`` stratified lobe estimate of ``dS`` (m, 3), white units, for samples with points
@@ -536,24 +602,58 @@ class SupportPlaneLight:
         wgt = chq * chq * chq * oh * np.sqrt(ci / per[7])
         dL, hit, hc, exc, t = self._delta_radiance_down(per[0], per[1], per[2], wx, wy, wz)   # (3, Q), hits
         if mis is not None and len(hit):
-            bits, n2 = mis
-            hs = smp[hit]
-            use = (bits[hs] >> hc) & 1 == 1
-            if use.any():
-                hit, hs, hc, exc = hit[use], hs[use], hc[use], exc[:, use]
-                ah = a[hs]
-                # Walter's pdf of the ray; its exp(-tan^2 theta_h / a^2) is u1
-                p_lobe = u1.reshape(-1)[si[hit]] / (4 * np.pi * ah * ah * chq[hit].astype(np.float64) ** 3
-                                                    * oh[hit].astype(np.float64))
-                p_area = t[hit].astype(np.float64) ** 3 / (np.pi * self.radii[hc] ** 2 * p[hs, 2])
-                w_lobe = (K * p_lobe) ** 2 / ((K * p_lobe) ** 2 + (n2 * p_area) ** 2)    # power heuristic
-                dL[:, hit] -= ((1.0 - w_lobe) * exc).astype(f32)
+            # Walter's pdf of the ray; its exp(-tan^2 theta_h / a^2) is u1
+            got = self._mis_excess(mis, smp, hit, hc, exc, t, p, K, lambda hit, hs: u1.reshape(-1)[si[hit]] / (
+                4 * np.pi * a[hs] * a[hs] * chq[hit].astype(np.float64) ** 3 * oh[hit].astype(np.float64)))
+            if got is not None:
+                dL[:, got[0]] -= got[1].astype(f32)
         out = np.empty((m, 3))
         for c in range(3):
             out[:, c] = np.bincount(smp, weights=wgt * dL[c], minlength=m)
         return out / K
 
-    def _circle_mc(self, p, n, v, a, c, k2, ru, rw, n_lobe) -> np.ndarray:
+    def _lobe_mc_ggx(self, p, n, v, a, k, r1, r2, mis=None) -> np.ndarray:
+        """The ``k x k`` stratified estimate of ``dS`` (m, 3), white units, for GGX samples (arguments
+        as :meth:`_lobe_mc`, ``a`` the GGX roughness): ray (i, j) draws GGX's visible normals
+        (:func:`appfusion.relight.sample_ggx`) at ``u1 = (i + 0.5 + r1) / k mod 1``, ``u2 = (j + 0.5) / k
+        + r2 mod 1`` and weighs ``(L_plane - L_env)(w_i)`` by ``f cos_i / pdf = G1(w_i)``; rays with
+        ``cos_i > 0`` that go down meet the plane. ``mis`` as in :meth:`_delta_S_mc`, with the lobe's
+        density ``G1(w_o) D(h) / (4 cos_o)``. Float64, arrays (m, k^2) (GGX clusters are the few).
+        """
+        m = len(p)
+        K = k * k
+        g = (np.arange(k) + 0.5) / k
+        u1 = g[None, :, None] + r1[:, None, None] / k                             # (m, k, 1): i
+        u1 -= u1 >= 1.0
+        u2 = g[None, None, :] + r2[:, None, None]                                  # (m, 1, k): j
+        u2 -= u2 >= 1.0
+        u1, u2 = (np.broadcast_to(x, (m, k, k)).reshape(m, K) for x in (u1, u2))
+        F = local_frame(n)
+        vl = np.einsum("mij,mj->mi", F, v)
+        wi_l, _, pdf = sample_ggx(a[:, None], vl[:, None, :], u1, u2)           # (m, K, 3), (m, K)
+        ci = wi_l[..., 2]
+        wz = np.einsum("mj,mkj->mk", F[:, :, 2], wi_l)                           # w_i.z, world
+        q = np.flatnonzero((ci > COS_EPS) & (wz < -1e-6))
+        if len(q) == 0:
+            return np.zeros((m, 3))
+        smp = q // K
+        wl = wi_l.reshape(-1, 3)[q]
+        wx = np.einsum("qj,qj->q", F[smp, :, 0], wl)
+        wy = np.einsum("qj,qj->q", F[smp, :, 1], wl)
+        wgt = ggx_g1(a[smp], ci.reshape(-1)[q])
+        dL, hit, hc, exc, t = self._delta_radiance_down(p[smp, 0], p[smp, 1], p[smp, 2], wx, wy,
+                                                        wz.reshape(-1)[q])
+        dL = dL.astype(np.float64)
+        if mis is not None and len(hit):
+            got = self._mis_excess(mis, smp, hit, hc, exc, t, p, K, lambda hit, hs: pdf.reshape(-1)[q[hit]])
+            if got is not None:
+                dL[:, got[0]] -= got[1]
+        out = np.empty((m, 3))
+        for c in range(3):
+            out[:, c] = np.bincount(smp, weights=wgt * dL[c], minlength=m)
+        return out / K
+
+    def _circle_mc(self, p, n, v, a, c, k2, ru, rw, n_lobe, ggx: bool = False) -> np.ndarray:
         """Area samples of circle ``c`` (P,) for samples (points ``p``, normals ``n``, views ``v``:
         (P, 3); Ward ``a`` (P,)): the circle's excess over the paper, ``int_disc (L_circle - L_paper)
         shadow f cos_i cos_c / r^2 dA`` (white units, (P, 3)), by ``k2 x k2`` stratified uniform points
@@ -561,7 +661,9 @@ class SupportPlaneLight:
         each weighed against the ``n_lobe`` lobe samples by the power heuristic, ``f cos_i a_a / (a_l^2 +
         a_a^2)`` with ``a_l = n_lobe p_lobe``, ``a_a = k2^2 p_area``: ``p_area = r^3 / (A p_z)`` per steradian, ``p_lobe`` Walter's Ward pdf. Points of
         the disc beyond ``extent_m`` add nothing (the map is kept there). Arrays (k2, k2, P), float32
-        per area sample (the estimate is summed in float64)."""
+        per area sample (the estimate is summed in float64). ``ggx``: the samples' lobe is GGX (``a``
+        its roughness): ``f`` is :func:`appfusion.brdf.ggx_half`, ``p_lobe`` the visible-normal density
+        ``G1(w_o) D(h) / (4 cos_o)`` of :meth:`_lobe_mc_ggx`."""
         P = len(p)
         n2 = k2 * k2
         f32 = np.float32
@@ -589,11 +691,17 @@ class SupportPlaneLight:
         oh = (vx * hx + vy * hy + vz * hz) / hn
         ok = (ci > COS_EPS) & (ch > COS_EPS) & (oh > 0) & (x * x + y * y <= f32(self.extent ** 2))
         chs = np.where(ok, ch, f32(1.0))
-        a2 = a * a
-        c2 = chs * chs
-        E = np.exp(-(1.0 - c2) / (c2 * a2))
-        f_cos = E / (f32(4 * np.pi) * a2) * np.sqrt(np.where(ok, ci, f32(0.0)) / co)   # f cos_i (1/sr)
-        p_lobe = E / (f32(4 * np.pi) * a2 * c2 * chs * np.where(ok, oh, f32(1.0)))
+        if ggx:
+            ci_ = np.where(ok, ci, f32(1.0)).astype(np.float64)
+            co_ = co.astype(np.float64)
+            f_cos = np.where(ok, ggx_half(a, chs, ci_, co_) * ci_, 0.0)                  # f cos_i (1/sr)
+            p_lobe = ggx_g1(a, co_) * ggx_d(a, chs) / (4.0 * co_)
+        else:
+            a2 = a * a
+            c2 = chs * chs
+            E = np.exp(-(1.0 - c2) / (c2 * a2))
+            f_cos = E / (f32(4 * np.pi) * a2) * np.sqrt(np.where(ok, ci, f32(0.0)) / co)   # f cos_i (1/sr)
+            p_lobe = E / (f32(4 * np.pi) * a2 * c2 * chs * np.where(ok, oh, f32(1.0)))
         p_area = r * r * r / (f32(np.pi * R * R) * p[:, 2])
         a_l, a_a = f32(n_lobe) * p_lobe, f32(n2) * p_area
         w = np.where(ok, f_cos * a_a / (a_l * a_l + a_a * a_a), f32(0.0))          # (n2, P)
@@ -656,9 +764,10 @@ class SupportPlaneLight:
         out[:, i] = plane - (top + (bot - top) * ay)
         return out, i[hit], hc, exc, t
 
-    def _delta_S_mc_reference(self, p, n, v, al, idx, k, r1, r2, out) -> None:
+    def _delta_S_mc_reference(self, p, n, v, al, idx, k, r1, r2, out, ggx=None) -> None:
         """The original per-ray implementation of :meth:`_delta_S_mc` (sample_ward, ward, delta_radiance
-        on every ray), kept as the reference the tests hold the fast path to."""
+        on every ray; for the samples ``ggx`` (M,) bool, sample_ggx and ggx), kept as the reference the
+        tests hold the fast path to."""
         g = (np.arange(k) + 0.5) / k
         u1, u2 = np.meshgrid(g, g, indexing="ij")
         u1, u2 = u1.ravel(), u2.ravel()                                         # (K,)
@@ -673,8 +782,11 @@ class SupportPlaneLight:
             uu2 = (u2[None, :] + r2[s:s + chunk, None]) % 1.0
             vlk = np.broadcast_to(vl[:, None, :], (m, len(u1), 3))
             wi, vh, pdf = sample_ward(a, vlk, uu1, uu2)                            # (m, K, 3), (m, K), (m, K)
+            gj = None if ggx is None else ggx[j]
+            if gj is not None and gj.any():
+                wi[gj], vh[gj], pdf[gj] = sample_ggx(a[gj], vlk[gj], uu1[gj], uu2[gj])
             ci = wi[..., 2]
-            f = ward(a, wi, vlk)
+            f = _lobe_rows(a, wi, vlk, gj)
             wgt = np.where((ci > 0) & (vh > 0), f * ci / np.maximum(pdf, 1e-300), 0.0)
             wi_w = np.einsum("mji,mkj->mki", F, wi)
             dL = self.delta_radiance(np.repeat(p[j], len(u1), 0), wi_w.reshape(-1, 3)).reshape(m, len(u1), 3)

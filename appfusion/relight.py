@@ -14,7 +14,8 @@ lights), into compact very bright *emitters* and the smooth *rest*, ``L_env = su
   ``sum_k L_k f_r(w_k, w_o) (n . w_k)+ V(w_k) dw_k``;
 - the rest by Monte Carlo with multiple importance sampling (balance heuristic) of two strategies, the
   map (texels chosen in proportion to luminance x solid angle) and the BRDF (cosine lobe for the diffuse
-  part, Ward's half-vector distribution for the specular part, chosen in proportion to their albedos),
+  part, for the specular part Ward's half-vector distribution or, for a GGX point, GGX's distribution
+  of visible normals (:func:`sample_ggx`), chosen in proportion to their albedos),
   stratified per point; its diffuse part uses the rest's unshadowed irradiance ``E(n)`` (a table) as a
   control variate, so Monte Carlo only estimates what the occluders take away.
 
@@ -26,7 +27,8 @@ demo's references with the *truth* reflectance and geometry; the split renderer 
 
 Visibility V (self-shadowing) is traced against the object's own mesh with Open3D's RaycastingScene.
 Unlike the capture passes, which ignore visibility as the paper does (§3), relighting can afford it.
-The same model as the engine (:mod:`appfusion.brdf`).
+The same model as the engine (:mod:`appfusion.brdf`): each point's specular lobe is the one its
+cluster's model names (Ward, or GGX for the model ladder's third rung; :data:`appfusion.brdf.LOBES`).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import local_frame, sample_ward, ward, ward_pdf
+from .brdf import COS_EPS, LOBES, ggx, ggx_d, ggx_g1, local_frame, sample_ward, ward, ward_pdf
 from .errors import AppFusionError
 from .frame import REC709_LUMA, Intrinsics
 from .result import ScanResult
@@ -324,15 +326,128 @@ class EnvSampler:
         return float(np.sqrt(4 * np.pi / (2 * self.n * self.n)))
 
 
+#: GGX's half-vector lobe at half maximum is this fraction of Ward's at the same alpha
+#: (``tan theta_h = sqrt(sqrt(2) - 1) alpha`` against ``sqrt(ln 2) alpha``): the emitters' cell
+#: refinement of a GGX point uses ``0.773 alpha`` as its width (:func:`_emitter_light`)
+GGX_CORE_TO_WARD = float(np.sqrt(np.sqrt(2.0) - 1.0) / np.sqrt(np.log(2.0)))
+#: the BRDF strategy of GGX points in :func:`_rest_light`: "vndf" (:func:`sample_ggx`) or "ward"
+#: (Ward's half-vector proposal with its own pdf: also unbiased, noisier; kept for comparison)
+_GGX_PROPOSAL = "vndf"
+
+
+def sample_ggx(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GGX visible-normal sampling (Heitz 2018, "Sampling the GGX distribution of visible normals",
+    JCGT 7(4)) in the local frame (normal +z), for :func:`appfusion.brdf.ggx`.
+
+    The half vector ``h`` is drawn with density ``G1(w_o) (w_o . h)+ D(h) / cos_o`` (the normals the
+    viewer sees), ``w_o`` reflected about it; the solid-angle density of ``w_i`` is then
+    ``G1(w_o) D(h) / (4 cos_o)`` and the estimator weight ``f cos_i / pdf = G1(w_i)`` (<= 1, also at
+    grazing views, unlike the ``D cos(theta_h)`` half-vector sampling of Walter et al. 2007).
+
+    Parameters
+    ----------
+    alpha : float or ndarray
+        GGX roughness (> 0), broadcast against ``u1``.
+    wo_l : (..., 3) ndarray
+        Unit view directions, local frame, above the horizon (a view at or below it is treated as
+        grazing, ``cos_o = 1e-9``).
+    u1, u2 : ndarray
+        Uniforms in [0, 1): radius ``sqrt(u1)`` and azimuth ``2 pi u2`` on the projected hemisphere
+        of visible normals (a stratified pattern of ``(u1, u2)`` stays stratified).
+
+    Returns
+    -------
+    wi : (..., 3) ndarray
+        The sampled lighting directions (may lie below the horizon: their lobe value is 0).
+    cos_oh : (...) ndarray
+        ``w_o . h`` (>= 0 by construction).
+    pdf : (...) ndarray
+        The samples' solid-angle density (1/sr), as :func:`ggx_pdf` gives it.
+    """
+    a = np.asarray(alpha, dtype=np.float64)
+    wo_l = np.asarray(wo_l, dtype=np.float64)
+    u1 = np.asarray(u1, dtype=np.float64)
+    u2 = np.asarray(u2, dtype=np.float64)
+    # the view in the stretched configuration (alpha -> 1), hemisphere of visible normals
+    vz = np.maximum(wo_l[..., 2], 1e-9)
+    hx, hy, hz = a * wo_l[..., 0], a * wo_l[..., 1], vz
+    ln = np.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hy, hz = hx / ln, hy / ln, hz / ln
+    lensq = hx * hx + hy * hy
+    pos = lensq > 0
+    inv = np.where(pos, 1.0 / np.sqrt(np.where(pos, lensq, 1.0)), 0.0)
+    t1x, t1y = np.where(pos, -hy * inv, 1.0), np.where(pos, hx * inv, 0.0)       # T1 = (t1x, t1y, 0)
+    t2x, t2y, t2z = -hz * t1y, hz * t1x, hx * t1y - hy * t1x                      # T2 = V_h x T1
+    r = np.sqrt(u1)
+    phi = 2 * np.pi * u2
+    p1, p2 = r * np.cos(phi), r * np.sin(phi)
+    s = 0.5 * (1.0 + hz)
+    p2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - p1 * p1, 0.0)) + s * p2
+    p3 = np.sqrt(np.maximum(1.0 - p1 * p1 - p2 * p2, 0.0))
+    nx = p1 * t1x + p2 * t2x + p3 * hx
+    ny = p1 * t1y + p2 * t2y + p3 * hy
+    nz = p2 * t2z + p3 * hz
+    # back to the ellipsoid configuration
+    mx, my, mz = a * nx, a * ny, np.maximum(nz, 0.0)
+    mn = np.maximum(np.sqrt(mx * mx + my * my + mz * mz), 1e-300)
+    h = np.stack([mx / mn, my / mn, mz / mn], axis=-1)
+    cos_oh = np.sum(wo_l * h, -1)
+    pdf = ggx_g1(a, vz) * ggx_d(a, h[..., 2]) / (4.0 * vz)
+    return 2 * cos_oh[..., None] * h - wo_l, cos_oh, pdf
+
+
+def ggx_pdf(alpha, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
+    """Solid-angle density (1/sr) of :func:`sample_ggx` drawing ``wi_l`` for ``wo_l`` (local frame):
+    ``G1(w_o) D(h) / (4 cos_o)``, 0 where the half vector or the view is at or below the horizon or
+    the half vector faces away from the viewer."""
+    wi_l = np.asarray(wi_l, dtype=np.float64)
+    wo_l = np.asarray(wo_l, dtype=np.float64)
+    h = wi_l + wo_l
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    ch = h[..., 2]
+    co = wo_l[..., 2]
+    ok = (ch > COS_EPS) & (co > COS_EPS) & (np.sum(wo_l * h, -1) > 0)
+    co_ = np.where(ok, co, 1.0)
+    return np.where(ok, ggx_g1(alpha, co_) * ggx_d(alpha, np.where(ok, ch, 1.0)) / (4.0 * co_), 0.0)
+
+
+def _ggx_rows(lobe, M: int, who: str = "shade_points") -> np.ndarray | None:
+    """(M,) bool, the points whose lobe is GGX, from ``lobe`` (None, a name or (M,) names; "diffuse"
+    counts as Ward); None where there is none (the all-Ward path). ``who`` names the caller in errors."""
+    if lobe is None:
+        return None
+    names = np.asarray(lobe)
+    if names.ndim > 1 or (names.ndim == 1 and len(names) != M):
+        raise AppFusionError(f"{who}: lobe must be a name or one name per point ({M}), got shape {names.shape}")
+    names = np.broadcast_to(names.astype(str), (M,))
+    bad = sorted(set(np.unique(names).tolist()) - set(LOBES) - {"diffuse"})
+    if bad:
+        raise AppFusionError(f"{who}: unknown specular lobe(s) {bad}; the engine knows {', '.join(LOBES)}")
+    g = names == "ggx"
+    return g if g.any() else None
+
+
+def _lobe_rows(a, wi_l: np.ndarray, wo_l: np.ndarray, g: np.ndarray | None) -> np.ndarray:
+    """Specular lobe values (m, K) 1/sr: Ward, GGX on the rows ``g`` (m,) (None: none). ``a`` (m, 1)
+    roughness, ``wi_l`` (m, K, 3) and ``wo_l`` (m, K, 3) local directions."""
+    f = ward(a, wi_l, wo_l)
+    if g is not None:
+        gi = np.flatnonzero(g)
+        if len(gi):
+            f[gi] = ggx(a[gi], wi_l[gi], wo_l[gi])
+    return f
+
+
 def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | EnvSampler,
-                 spp: int = 256, scene=None, seed: int = 0, chunk: int = 4096) -> np.ndarray:
+                 spp: int = 256, scene=None, seed: int = 0, chunk: int = 4096, lobe=None) -> np.ndarray:
     """Outgoing radiance (linear RGB) at surface points towards ``wo`` (paper Eq. 2 with Eq. 1).
 
     ``L(w_o) = sum_k L_k f_r(w_k, w_o) (n . w_k)+ V(w_k) dw_k + integral L_rest f_r (n . w)+ V dw``
     (paper Eq. 2; ``f_r`` of Eq. 1). The emitters of :class:`EnvSampler` by a deterministic midpoint
     rule (:meth:`EnvSampler.emitter_samples` at refinement ``s = ceil(4 h / (sqrt(2) alpha))``, 1 to 4,
     ``h`` the texel angle, so that the Ward lobe's incident-direction width ``sqrt(2) alpha`` spans
-    about four cells; ``s = 1`` for matte points), one shadow ray per cell; the rest by MIS Monte Carlo
+    about four cells; a GGX point takes ``GGX_CORE_TO_WARD alpha`` for ``alpha``, its core being that
+    much narrower; ``s = 1`` for matte points), one shadow ray per cell; the rest by MIS Monte Carlo
     (:func:`_rest_light`). A point seen from below its shading normal's horizon (``n . w_o <= 0``: an
     interpolated normal at a silhouette) gets no specular term, as in the synthetic scanner's renderer.
 
@@ -342,8 +457,8 @@ def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | 
         Points (world, metres), unit normals, unit directions towards the viewer. Normals are
         renormalised; rows with a non-finite entry or a zero normal / view direction give 0.
     rho_d, rho_s : (M, 3) ndarray; alpha : (M,) ndarray
-        Reflectance of each point (paper Eq. 1): diffuse albedo, specular intensity, Ward roughness
-        (clamped to >= 1e-3).
+        Reflectance of each point (paper Eq. 1): diffuse albedo, specular intensity, roughness of
+        the point's lobe (clamped to >= 1e-3).
     env : (2, N, N, 3) ndarray or EnvSampler
         Environment radiance in the same world frame (an array is split with the default settings).
     spp : int
@@ -354,6 +469,11 @@ def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | 
         Seed of the Monte Carlo part (the emitters' part is deterministic).
     chunk : int
         Points per vectorised batch (memory).
+    lobe : None, str or (M,) array_like of str
+        Specular lobe of each point, "ward" or "ggx" (:data:`appfusion.brdf.LOBES`; "diffuse" counts
+        as "ward", its ``rho_s`` being 0): :func:`appfusion.brdf.ward` or :func:`appfusion.brdf.ggx`,
+        sampled by Ward's half vector or GGX's visible normals (:func:`sample_ggx`). None: all Ward
+        (the same numbers as without GGX support).
 
     Returns
     -------
@@ -369,6 +489,7 @@ def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | 
     rho_d = np.asarray(rho_d, np.float64).reshape(M, 3)
     rho_s = np.asarray(rho_s, np.float64).reshape(M, 3)
     alpha = np.asarray(alpha, np.float64).reshape(M)
+    is_ggx = _ggx_rows(lobe, M)
     out = np.zeros((M, 3))
     if M == 0:
         return out.astype(np.float32)
@@ -386,6 +507,7 @@ def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | 
         sl = slice(s, min(s + chunk, M))
         p, n, v = positions[sl], normals[sl], wo[sl]
         rd, rs, al = rho_d[sl], rho_s[sl], alpha[sl]
+        g = None if is_ggx is None else (is_ggx[sl] if is_ggx[sl].any() else None)
         F = local_frame(n)
         wo_l = np.einsum("mij,mj->mi", F, v)
         # seen from below the shading normal's horizon (an interpolated normal at a silhouette): no
@@ -395,9 +517,9 @@ def shade_points(positions, normals, wo, rho_d, rho_s, alpha, env: np.ndarray | 
         wo_l /= np.linalg.norm(wo_l, axis=1, keepdims=True)
         total = np.zeros((len(p), 3))
         if len(sampler.emitters):
-            total += _emitter_light(sampler, p, n, F, wo_l, rd, rs, al, scene)
+            total += _emitter_light(sampler, p, n, F, wo_l, rd, rs, al, scene, g=g)
         if spp > 0 and not sampler.rest_black:
-            total += _rest_light(sampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng)
+            total += _rest_light(sampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng, g=g)
         out[sl] = total
     out[~good] = 0.0
     return out.astype(np.float32)
@@ -413,17 +535,19 @@ def _occluded(scene, org: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     return scene.test_occlusions(o3d.core.Tensor(rays), tnear=1e-4).numpy().astype(bool)
 
 
-def _emitter_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, budget: int = 1 << 21) -> np.ndarray:
+def _emitter_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, budget: int = 1 << 21,
+                   g: np.ndarray | None = None) -> np.ndarray:
     """Explicit emitters: ``sum_k L_k f_r(w_k, w_o) (n . w_k)+ V(w_k) dw_k`` per point, (m, 3).
 
     Points are grouped by the cell subdivision ``s`` their lobe needs (see :func:`shade_points`);
-    matte points (``rho_s = 0``) use one cell per texel.
+    matte points (``rho_s = 0``) use one cell per texel. ``g`` (m,) bool: the GGX points (None: none).
     """
     m = len(p)
     out = np.zeros((m, 3))
     glossy = rs.mean(1) > 0
     h = sampler.texel_angle()
-    s_pt = np.where(glossy, np.ceil(4 * h / (np.sqrt(2) * al)), 1).clip(1, 4).astype(int)
+    width = al if g is None else np.where(g, GGX_CORE_TO_WARD * al, al)
+    s_pt = np.where(glossy, np.ceil(4 * h / (np.sqrt(2) * width)), 1).clip(1, 4).astype(int)
     for s in np.unique(s_pt):
         D, dw, Le = sampler.emitter_samples(int(s))
         K = len(D)
@@ -434,7 +558,8 @@ def _emitter_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, budget
             wi_l = np.einsum("mij,kj->mki", F[ix], D)  # (mb, K, 3)
             cos_i = wi_l[..., 2]
             lit = cos_i > 1e-6
-            f_spec = ward(al[ix, None], wi_l, np.broadcast_to(wo_l[ix, None, :], wi_l.shape))
+            f_spec = _lobe_rows(al[ix, None], wi_l, np.broadcast_to(wo_l[ix, None, :], wi_l.shape),
+                                None if g is None else g[ix])
             w = np.where(lit, cos_i, 0.0) * dw  # (mb, K)
             if scene is not None:
                 pi, ki = np.nonzero(lit)
@@ -445,12 +570,14 @@ def _emitter_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, budget
     return out
 
 
-def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng) -> np.ndarray:
+def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng,
+                g: np.ndarray | None = None) -> np.ndarray:
     """MIS Monte Carlo of ``integral L_rest f_r (n . w)+ V dw`` per point, (m, 3).
 
     Balance heuristic over the map's and the BRDF's strategies, ``spp`` samples each: a sample ``w``
     has the weight ``g(w) = (n . w)+ / (spp (pdf_map(w) + pdf_brdf(w)))`` and both strategies' sums
-    add up. Specular: ``rho_s sum L f g V``. Diffuse, with the unshadowed irradiance as a control
+    add up. The BRDF strategy draws from the cosine lobe or the specular lobe (Ward's half vector;
+    GGX's visible normals for the points ``g`` (m,) bool, None: none), ``pdf_brdf`` their mixture. Specular: ``rho_s sum L f g V``. Diffuse, with the unshadowed irradiance as a control
     variate: ``rho_d / pi (E(n) - sum L g (1 - V))`` (:meth:`EnvSampler.irradiance_rest`), exact where
     nothing is occluded, noisy only in what the occluders take away.
     """
@@ -467,6 +594,11 @@ def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng)
     choose_spec = u[..., 0] < q_spec[:, None]
     cos_dir = np.stack(_cosine(u[..., 1], u[..., 2]), -1)
     spec_dir, _, _ = sample_ward(al[:, None], wo_l[:, None, :], u[..., 1], u[..., 2])
+    gi = np.zeros(0, np.int64) if g is None else np.flatnonzero(g)
+    vndf = _GGX_PROPOSAL == "vndf" and len(gi) > 0
+    if vndf:
+        # the same stratified uniforms, GGX's visible normals
+        spec_dir[gi] = sample_ggx(al[gi, None], wo_l[gi, None, :], u[gi, :, 1], u[gi, :, 2])[0]
     wiB_l = np.where(choose_spec[..., None], spec_dir, cos_dir)
     dB = np.einsum("mji,msj->msi", F, wiB_l)
     wiA_l = np.einsum("mij,msj->msi", F, dA)
@@ -475,9 +607,11 @@ def _rest_light(sampler: EnvSampler, p, n, F, wo_l, rd, rs, al, scene, spp, rng)
     for wi_l, wi in ((wiA_l, dA), (wiB_l, dB)):
         cos_i = wi_l[..., 2]
         ok = cos_i > 1e-6
-        f_spec = ward(al[:, None], wi_l, np.broadcast_to(wo_l[:, None, :], wi_l.shape))
-        pdf_b = (1 - q_spec[:, None]) * np.maximum(cos_i, 0) / np.pi + q_spec[:, None] * ward_pdf(
-            al[:, None], wi_l, wo_l[:, None, :])
+        f_spec = _lobe_rows(al[:, None], wi_l, np.broadcast_to(wo_l[:, None, :], wi_l.shape), g)
+        pdf_s = ward_pdf(al[:, None], wi_l, wo_l[:, None, :])
+        if vndf:
+            pdf_s[gi] = ggx_pdf(al[gi, None], wi_l[gi], wo_l[gi, None, :])
+        pdf_b = (1 - q_spec[:, None]) * np.maximum(cos_i, 0) / np.pi + q_spec[:, None] * pdf_s
         pdf_a = sampler.pdf(wi)
         w = np.where(ok, cos_i, 0.0) / np.maximum(spp * (pdf_a + pdf_b), 1e-30)
         L = sampler.rest_radiance(wi)
@@ -598,6 +732,17 @@ def render_view(result: ScanResult, env: np.ndarray, intrinsics: Intrinsics, pos
         ng = hit["primitive_normals"].numpy()[mask].astype(np.float64)
         ng = np.where(np.sum(ng * wo, 1, keepdims=True) < 0, -ng, ng)
         n = np.where(np.sum(n * ng, 1, keepdims=True) < 0, -n, n)
+        lobes = _cluster_lobes(result)
         img[mask] = shade_points(pos, n, wo, rd, result.rho_s[lab], result.alpha[lab], env, spp=spp,
-                                 scene=scene if shadows else None, seed=seed)
+                                 scene=scene if shadows else None, seed=seed,
+                                 lobe=lobes[lab] if (lobes == "ggx").any() else None)
     return img.reshape(H, W, 3), mask.reshape(H, W)
+
+
+def _cluster_lobes(result) -> np.ndarray:
+    """(C,) str, each cluster's specular lobe from ``result.model``: "ggx" where the model says so,
+    else "ward" (a "diffuse" cluster has ``rho_s = 0``; a missing or short ``model`` list counts as
+    Ward)."""
+    C = len(np.asarray(result.alpha))
+    model = list(getattr(result, "model", None) or [])
+    return np.array(["ggx" if i < len(model) and str(model[i]) == "ggx" else "ward" for i in range(C)])
