@@ -14,7 +14,10 @@ Only evaluation reads ``truth/``; the engine never does. Metrics (names as in ``
 - ``label_accuracy``: fraction of points (= of area: points are area-uniform) whose cluster maps to
   their true material, under the best one-to-one mapping of clusters to materials (Hungarian).
 - ``alpha_cluster_rel_err``, ``rho_s_rel_err``: worst relative error over clusters mapped to a glossy
-  Ward material (rho_s: mean over RGB of the per-channel relative error).
+  Ward or GGX material whose model names that lobe, or is diffuse (rho_s: mean over RGB of the
+  per-channel relative error); a cluster exported with the other lobe has no comparable alpha.
+- ``lobe_accuracy``: fraction of the clusters mapped to a glossy material whose model names the
+  material's lobe (Ward or GGX; the model ladder's choice); NaN without glossy materials.
 - ``rho_s_err_sigmas``: the same clusters' rho_s error in units of its own standard error
   (``ScanResult.rho_s_sigma``; mean over RGB, worst cluster): about 1 when the error is the capture's
   noise, NaN where no standard error was estimated.
@@ -171,10 +174,15 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
     mapping, acc = cluster_mapping(result.labels, fm)
     out["label_accuracy"] = acc
     out["cluster_to_material"] = mapping
-    a_err, s_err, z_err = [], [], []
+    a_err, s_err, z_err, lobe_ok = [], [], [], []
     for c, mid in mapping.items():
         m = mats[mid]
-        if m.get("lobe", "ward") != "ward" or max(m["rho_s"]) <= 0 or c >= result.n_clusters:
+        lobe = m.get("lobe", "ward")
+        if lobe not in ("ward", "ggx") or max(m["rho_s"]) <= 0 or c >= result.n_clusters:
+            continue
+        model = result.model[c] if c < len(result.model) else "ward"
+        lobe_ok.append(model == lobe)
+        if model not in ("diffuse", lobe):
             continue
         a_err.append(abs(result.alpha[c] - m["alpha"]) / m["alpha"])
         rs = np.asarray(m["rho_s"], float)
@@ -183,14 +191,16 @@ def evaluate_result(result: ScanResult, session: str | os.PathLike, poses: dict[
         if np.isfinite(sig).all() and (sig > 0).all():
             z_err.append(float(np.mean(np.abs(result.rho_s[c] - rs) / sig)))
     out["alpha_cluster_rel_err"] = float(max(a_err)) if a_err else float("nan")
+    out["lobe_accuracy"] = float(np.mean(lobe_ok)) if lobe_ok else float("nan")
     # the material whose IR highlight is most visible (largest Ward peak ir_rho_s / alpha^2): a
     # near-matte material's alpha (the two-material label: rho_s 0.02, alpha 0.35, a lobe 7 % above its
     # diffuse level) is barely determined by any IR data, so its error is reported apart
     peak = {mid: m.get("ir_rho_s", max(m["rho_s"])) / m["alpha"] ** 2 for mid, m in enumerate(mats)
-            if m.get("lobe", "ward") == "ward" and m["alpha"] > 0 and m.get("ir_rho_s", max(m["rho_s"])) > 0}
+            if m.get("lobe", "ward") in ("ward", "ggx") and m["alpha"] > 0 and m.get("ir_rho_s", max(m["rho_s"])) > 0}
     if peak:
         sharp = max(peak, key=peak.get)
-        cl = [c for c, mid in mapping.items() if mid == sharp and c < result.n_clusters]
+        cl = [c for c, mid in mapping.items() if mid == sharp and c < result.n_clusters
+              and (result.model[c] if c < len(result.model) else "ward") in ("diffuse", mats[sharp].get("lobe", "ward"))]
         if cl:
             out["alpha_sharpest_rel_err"] = float(min(abs(result.alpha[c] - mats[sharp]["alpha"]) / mats[sharp]["alpha"]
                                                       for c in cl))

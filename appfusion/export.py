@@ -17,7 +17,10 @@ Ward to glTF mapping (glTF has no Ward lobe): baseColor = rho_d (sRGB texture); 
 roughness = sqrt(alpha) — glTF squares its roughness into the GGX alpha, and a Ward lobe of roughness
 alpha matches a GGX/Beckmann lobe of the same slope spread near the peak; the specular intensity
 rho_s has no core-glTF slot, so it is carried in the material's ``extras`` (per cluster) and in
-``rho_s.exr``. The exact parameters are always the Ward maps beside the .glb.
+``rho_s.exr``. The exact parameters are always the Ward maps beside the .glb. A cluster whose lobe is
+GGX (the model ladder's third rung, ``result.model``) maps exactly: glTF's lobe is GGX, and
+roughness = sqrt(alpha) is its own definition (glTF's Fresnel term aside); ``extras`` names each
+cluster's model.
 """
 
 from __future__ import annotations
@@ -234,7 +237,7 @@ def write_ply_points(path: Path, result: ScanResult) -> None:
     arr["red"], arr["green"], arr["blue"] = srgb[:, 0], srgb[:, 1], srgb[:, 2]
     arr["cluster"] = result.labels
     types = {"<f4": "float", "u1": "uchar", "<i4": "int"}
-    header = ["ply", "format binary_little_endian 1.0", "comment appfusion scan: linear rho_d, rho_s, Ward alpha",
+    header = ["ply", "format binary_little_endian 1.0", "comment appfusion scan: linear rho_d, rho_s, lobe roughness alpha (Ward or GGX per cluster: result.npz model)",
               f"element vertex {P}"] + [f"property {types[t]} {n}" for n, t in dt] + ["end_header"]
     with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode())
@@ -325,12 +328,15 @@ def export_result(result: ScanResult, out_dir: str | os.PathLike, texture_size: 
     tm = trimesh.Trimesh(vertices=corner_v, faces=faces_c, vertex_normals=corner_n, process=False,
                          visual=trimesh.visual.TextureVisuals(uv=uv_gl, material=material))
     tm.metadata["extras"] = {
-        "appfusion": {"model": "rho_d/pi + rho_s * Ward(alpha), Ward 1992 isotropic",
+        "appfusion": {"model": "rho_d/pi + rho_s * f(alpha), f per cluster: Ward 1992 isotropic or GGX "
+                               "(Smith G1, no Fresnel); see cluster_model",
+                      "cluster_model": list(result.model),
                       "rho_s": result.rho_s.tolist(), "alpha": result.alpha.tolist(),
                       "alpha_sigma": result.alpha_sigma.tolist(),
                       "rho_s_sigma": [[json_float(v) for v in row]
                                       for row in result.rho_s_sigma],
-                      "roughness_mapping": "gltf_roughness = sqrt(ward_alpha)"}}
+                      "roughness_mapping": "gltf_roughness = sqrt(alpha) (exact for GGX clusters, the lobe "
+                                           "of the same peak width for Ward clusters)"}}
     glb = out / "object.glb"
     glb.write_bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene(tm), include_normals=True))
     written["glb"] = glb

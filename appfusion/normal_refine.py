@@ -173,6 +173,7 @@ class NormalRefiner:
         Q, K = self.cand.shape[:2]
         self.K = K
         self.alpha_eff = rgb._map_alpha(rgb.point_alpha[self.sel])
+        self.lobe = rgb.point_lobe[self.sel]                   # each refined point's lobe (brdf.LOBES)
         # D of each candidate: the tables' distant light, plus the pass's near-field part at the normal
         D0 = rgb.D[self.sel].astype(np.float64)
         Dt = rgb.tables.D(self.cand.reshape(-1, 3)).reshape(Q, K, 3).astype(np.float64)
@@ -255,7 +256,8 @@ class NormalRefiner:
         n0 = self.N0[pts]
         ae = self.alpha_eff[q]
         rs = self.rho_s[g.labels[pts]]
-        S0 = g.tables.S(n0, wo, ae)
+        lb = self.lobe[q]
+        S0 = g.table_S(n0, wo, ae, lb)
         full = np.ones(m, bool)
         if self._range is not None:
             from .octahedral import sphere_texel_index
@@ -269,13 +271,12 @@ class NormalRefiner:
             # candidate-major: each of the K look-ups reads the tables in the points' (normal-sorted)
             # order, as the pass does
             nk = self.cand[q[f], 1:].transpose(1, 0, 2).reshape(-1, 3)
-            Sk = g.tables.S(nk, np.tile(wo[f], (K - 1, 1)), np.tile(ae[f], K - 1))
+            Sk = g.table_S(nk, np.tile(wo[f], (K - 1, 1)), np.tile(ae[f], K - 1), np.tile(lb[f], K - 1))
             S[f, 1:] = Sk.reshape(K - 1, len(f), 3).transpose(1, 0, 2)
         self.stats["samples"] += m
         self.stats["full"] += len(f)
         if g.near_field is not None:                          # the plane's dS at the current normal, for all
-            dS = g.near_field.delta_S(g.positions[pts], n0, wo, g.point_alpha[pts],
-                                      n_samples=g.near_field_samples, seed=7 * g.frames + m)
+            dS = g.near_field_dS(g.positions[pts], n0, wo, g.point_alpha[pts], lb, seed=7 * g.frames + m)
             S = np.maximum(S + dS[:, None, :], 0.0)
         r = L[:, None, :] - rs[:, None, :] * S                                # (m, K, 3)
         self.n[q] += 1                                        # one sample per point and frame

@@ -65,8 +65,9 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 #: default, from 60 frames on; 35: holes closed by boundary loop (clipped to a star, a web of rings,
 #: faired), no longer by VTK's filler; 36: specular normal refinement by default where the fine
 #: re-fusion fired, moved points keep their rho_d; 37: normals from cubic jet fits where the normal
-#: filter's stages do not converge, a crease's rounded band split between its faces)
-CHECKPOINT_VERSION = 37
+#: filter's stages do not converge, a crease's rounded band split between its faces; 38: the IR fit
+#: chooses each cluster's lobe, Ward or GGX, the model ladder's third rung)
+CHECKPOINT_VERSION = 38
 
 
 def _broad_lobe(alpha) -> np.ndarray:
@@ -81,6 +82,15 @@ def _broad_lobe(alpha) -> np.ndarray:
     from .ward_fit import ALPHA_MAX
 
     return np.asarray(alpha, np.float64).reshape(-1) >= ALPHA_MAX * (1 - 1e-6)
+
+
+def _ir_lobes(ir, k: int) -> np.ndarray:
+    """(k,) names of the IR clusters' lobes (``ir["lobe"]``; Ward where the IR arrays have none)."""
+    out = np.full(k, "ward", dtype="<U8")
+    if ir is not None and "lobe" in ir:
+        lb = np.asarray(ir["lobe"], str).reshape(-1)[:k]
+        out[:len(lb)] = lb
+    return out
 
 
 #: stages the runner reports (a pass may hold two stages: geometry = fusion then IR)
@@ -238,6 +248,11 @@ class ScanConfig:
         Points within this distance of the fused surface's open boundary (where the object box cut it
         off the support plane) stay out of the IR pass's Ward fits (``rim`` of
         :class:`appfusion.brdf_cut.BRDFCut`); 0 keeps them.
+    ir_lobes : tuple of str
+        The lobes the IR fits may choose between per cluster (:data:`appfusion.brdf.LOBES`; the model
+        ladder's Ward and GGX rungs, :func:`appfusion.ward_fit.choose_lobe`): GGX is kept only where
+        it lowers the HBSAB fit's chi-square by 5 % and 25 of its reduced chi-squares. ``("ward",)``:
+        the paper's model only.
     ir_interior_m : float
         The colour pass's refits of the IR lobes to its clusters read only the points farther than this
         from another cluster (metres; :func:`appfusion.points.interior_mask`): along a seam a label
@@ -304,6 +319,7 @@ class ScanConfig:
     normal_refine_screen: float | None = None
     normal_refine_min_gain: float = 0.0
     ir_rim_m: float = 0.004
+    ir_lobes: tuple = ("ward", "ggx")
     ir_interior_m: float = 0.005
     ir_pattern: bool = True
     frame_stride: int = 1
@@ -521,6 +537,11 @@ class ScanRunner:
             raise AppFusionError(f"scan config: refuse_rounds must be at least 1 (refuse_geometry=False turns the "
                                  f"re-registration off), got {self.config.refuse_rounds}")
         c = self.config
+        from .brdf import LOBES
+
+        lobes = (c.ir_lobes,) if isinstance(c.ir_lobes, str) else tuple(c.ir_lobes or ())
+        if not lobes or any(str(x) not in LOBES for x in lobes):
+            raise AppFusionError(f"scan config: ir_lobes must name one or more lobes among {LOBES}, got {c.ir_lobes!r}")
         if not (isinstance(c.n_points, (int, np.integer)) and int(c.n_points) >= 1):
             raise AppFusionError(f"scan config: n_points (points sampled on the surface) must be a positive "
                                  f"integer, got {c.n_points!r}")
@@ -1137,7 +1158,9 @@ class ScanRunner:
             from .geometry_pass import open_boundary_points
 
             rim = open_boundary_points(P, self.mesh[0], self.mesh[1], self.config.ir_rim_m)
-        ir = IRPass(P, N, self.ir_profile, hbsab_n=self.config.hbsab_n, k=self.config.k_clusters, rim=rim)
+        lobes = (self.config.ir_lobes,) if isinstance(self.config.ir_lobes, str) else tuple(self.config.ir_lobes)
+        ir = IRPass(P, N, self.ir_profile, hbsab_n=self.config.hbsab_n, k=self.config.k_clusters, rim=rim,
+                    lobes=lobes)
         for i, lab in self._painted.items():
             ir.set_labels([i], lab)
         return ir
@@ -1164,9 +1187,11 @@ class ScanRunner:
         sig = np.array([c.alpha_sigma if c.alpha_sigma is not None else np.nan for c in res.clusters])
         fitted = res.fitted
         rho_s_ir = np.array([c.fit.rho_s if c.fit is not None else 0.0 for c in res.clusters])
+        lobe = np.array([getattr(c.fit, "lobe", "ward") if c.fit is not None else "ward" for c in res.clusters],
+                        dtype="<U8")
         return {"labels": res.labels.astype(np.int32), "alpha": alpha.astype(np.float32),
                 "alpha_sigma": np.nan_to_num(sig, nan=0.0).astype(np.float32), "fitted": fitted,
-                "rho_s_ir": rho_s_ir.astype(np.float32)}
+                "rho_s_ir": rho_s_ir.astype(np.float32), "lobe": lobe}
 
     def _publish_ir(self, res, used: int, force: bool = False) -> None:
         arr = self._ir_arrays(res)
@@ -1185,12 +1210,12 @@ class ScanRunner:
         if cluster.fit is None:
             return None
         from . import octahedral as oc
-        from .brdf import ward_retro
+        from .brdf import lobe_retro
 
         n = cluster.hbsab.n
         ch = oc.hemi_directions(n)[..., 2]
         f = cluster.fit
-        return (f.diffuse + f.rho_s * ward_retro(f.alpha, ch)).astype(np.float32)
+        return (f.diffuse + f.rho_s * lobe_retro(getattr(f, "lobe", "ward"), f.alpha, ch)).astype(np.float32)
 
     def _stage_rgb(self, start: int, stop: int, pass_name: str = "rgb") -> None:
         """§4.2 + §5.3: white-balanced RGB frames into per-point rho_d and per-cluster rho_s."""
@@ -1217,6 +1242,7 @@ class ScanRunner:
         labels = self._current_labels()
         ir = getattr(self, "_ir_result", None)
         alpha = ir["alpha"] if ir is not None else np.array([0.3])
+        lobes = _ir_lobes(ir, len(alpha))
         # model ladder, first rung from the IR pass: a cluster whose IR shows no lobe (no fit, rho_s 0,
         # or a lobe as broad as the model allows) is diffuse, and the RGB pass builds no
         # double-product table for it
@@ -1227,12 +1253,13 @@ class ScanRunner:
             if int(labels.max()) + 1 > len(specular):           # painted new clusters: let RGB decide
                 specular = np.r_[specular, np.ones(int(labels.max()) + 1 - len(specular), bool)]
                 alpha = np.r_[alpha, np.full(len(specular) - len(alpha), 0.3, np.float32)]
+                lobes = np.append(lobes, np.full(len(specular) - len(lobes), "ward"))
             if not specular.all():
                 why = (f" (the fit of cluster(s) {', '.join(str(c) for c in np.flatnonzero(broad))} ran to the roughness "
                        "bound, alpha 1: no highlight the Ward model can tell from diffuse)" if broad.any() else "")
                 self._note(f"rgb: cluster(s) {', '.join(str(c) for c in np.flatnonzero(~specular))} show no "
                            f"specular lobe in the IR{why}: diffuse only, no double-product tables for them")
-        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular,
+        self.rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, lobes=lobes,
                            near_field=self._near_field(), **self._rgb_kwargs())
         self._publish(force=True, stage="rgb", guidance=GUIDANCE["rgb"], tracking="ok")
         used = self._rgb_sweep(self.rgb, start, stop, pass_name, live=True)
@@ -1248,16 +1275,18 @@ class ScanRunner:
         r = self.rgb.result()
         labels = self.rgb.labels_caller_order()
         alpha = np.asarray(self.rgb.alphas, np.float32)
+        lobes = np.asarray(self.rgb.lobes, dtype="<U8")
         sigma = np.full(len(alpha), np.nan, np.float32)
         if splits or merges:
-            alpha, sigma = self._refit_ir(labels, alpha, sigma)
-            if self.config.rgb_resweep and not np.allclose(alpha, self.rgb.alphas, rtol=1e-3):
-                r, labels = self._rgb_resweep(labels, alpha, np.isfinite(sigma), start, stop, pass_name)
-                alpha2, sigma2, again = self._refit_ir_final(labels, alpha, sigma, r.model)
+            alpha, sigma, lobes = self._refit_ir(labels, alpha, sigma, lobes=lobes)
+            if self.config.rgb_resweep and not (np.allclose(alpha, self.rgb.alphas, rtol=1e-3)
+                                                and np.array_equal(lobes, self.rgb.lobes)):
+                r, labels = self._rgb_resweep(labels, alpha, np.isfinite(sigma), start, stop, pass_name, lobes=lobes)
+                alpha2, sigma2, lobes2, again = self._refit_ir_final(labels, alpha, sigma, r.model, lobes)
                 if again:                                   # a measured lobe moved: rho_s with its new S
                     r, labels = self._rgb_resweep(labels, alpha2, np.isfinite(sigma2), start, stop, pass_name,
-                                                  reassign=False)
-                alpha, sigma = alpha2, sigma2
+                                                  reassign=False, lobes=lobes2)
+                alpha, sigma, lobes = alpha2, sigma2, lobes2
         if int(self.config.rho_d_pool_k) > 1 and self.config.rho_d_estimator == "lsq":
             from .rgb_pass import denoise_rho_d
 
@@ -1273,7 +1302,7 @@ class ScanRunner:
                        f"{100 * float(np.median(change)) if len(change) else 0.0:.1f} %, {time.perf_counter() - t0:.1f} s)")
         self._rgb_result = {"rho_d": np.asarray(r.rho_d, np.float32), "rho_s": np.asarray(r.rho_s, np.float32),
                             "counts": np.asarray(r.counts), "model": np.array(r.model or ["ward"] * len(r.rho_s)),
-                            "labels": labels, "alpha": alpha, "alpha_sigma": sigma}
+                            "labels": labels, "alpha": alpha, "alpha_sigma": sigma, "lobe": np.asarray(lobes, dtype="<U8")}
         if r.rho_s_sigma is not None:
             self._rgb_result["rho_s_sigma"] = np.asarray(r.rho_s_sigma, np.float32)
         rounds = self._normal_refine_rounds()
@@ -1282,7 +1311,7 @@ class ScanRunner:
         if r.heldout_rss is not None:
             ward = r.rho_s_ward if r.rho_s_ward is not None else np.full((len(r.model), 3), np.nan)
             zs = r.heldout_z if r.heldout_z is not None else np.full(len(r.model), np.nan)
-            self._note("rgb: model ladder (held-out RSS diffuse / Ward, improvement in standard errors): " + "; ".join(
+            self._note("rgb: model ladder (held-out RSS diffuse / the cluster's lobe, improvement in standard errors): " + "; ".join(
                 f"cluster {c} {m} ({a:.3g} / {b:.3g}, z {z:.1f}" + (f"; Ward's rho_s would be {np.mean(w):.4f})"
                                                                    if m == "diffuse" else ")")
                 for c, (m, (a, b), w, z) in enumerate(zip(r.model, r.heldout_rss, ward, zs))))
@@ -1447,7 +1476,7 @@ class ScanRunner:
         return used
 
     def _rgb_resweep(self, labels: np.ndarray, alpha: np.ndarray, refitted: np.ndarray, start: int, stop: int,
-                     pass_name: str, reassign: bool = True):
+                     pass_name: str, reassign: bool = True, lobes=None):
         """Eq. 5 again over the RGB frames, with the clusters and lobes the first sweep settled.
 
         The first sweep's double products S were built with the IR clusters' alphas. Once the colour
@@ -1465,7 +1494,8 @@ class ScanRunner:
         point then goes to the cluster whose model fits its neighbourhood best
         (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`). Returns the new :class:`RGBResult`
         and labels (caller order). ``reassign=False``: the third sweep of :meth:`_refit_ir_final`,
-        with the final clusters kept as they are.
+        with the final clusters kept as they are. ``lobes``: each cluster's lobe name (default Ward);
+        only Ward lobes are measured on the other points.
         """
         from .rgb_pass import RGBPass
 
@@ -1477,9 +1507,11 @@ class ScanRunner:
         specular = (np.asarray(first.specular, bool) | np.asarray(refitted, bool)) & ~_broad_lobe(alpha)
         # the lobes the first sweep measured (its model ladder kept them) are also measured on every
         # other point, so that each point can go to the model that explains it best
-        kept = [c for c in range(min(len(alpha), len(first.model))) if first.model[c] == "ward" and specular[c]]
+        lobes = np.full(len(alpha), "ward", dtype="<U8") if lobes is None else np.asarray(lobes, dtype="<U8")
+        kept = [c for c in range(min(len(alpha), len(first.model)))
+                if first.model[c] == "ward" and lobes[c] == "ward" and specular[c]]
         compare = np.unique(np.asarray(alpha, np.float64)[kept]) if self.config.rgb_split and reassign else None
-        rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables,
+        rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables, lobes=lobes,
                       near_field=first.near_field, near_field_samples=int(self.config.near_field_final_samples),
                       compare_alphas=compare, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
@@ -1494,9 +1526,9 @@ class ScanRunner:
         return rgb.result(), rgb.labels_caller_order()
 
     def _refit_ir_final(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
-                        model) -> tuple[np.ndarray, np.ndarray, bool]:
-        """The IR lobes fitted once more, to the clusters the second sweep left; returns alpha, sigma
-        and whether a third sweep is needed.
+                        model, lobes) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """The IR lobes fitted once more, to the clusters the second sweep left; returns alpha, sigma,
+        the lobes' names and whether a third sweep is needed.
 
         The second sweep moves the points whose colour fits the other cluster's model better
         (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`: 3.6-4.6k of 100k on the demo and seed 1),
@@ -1512,39 +1544,41 @@ class ScanRunner:
         IR) needs none.
         """
         if self.ir is None:                                  # reused IR checkpoint: _refit_ir said so already
-            return alpha, sigma, False
-        new, new_sigma = self._refit_ir(labels, alpha, sigma, what="the final clusters")
-        alpha, sigma = alpha.copy(), sigma.copy()
+            return alpha, sigma, lobes, False
+        new, new_sigma, new_lobes = self._refit_ir(labels, alpha, sigma, what="the final clusters", lobes=lobes)
+        alpha, sigma, lobes = alpha.copy(), sigma.copy(), np.array(lobes, dtype="<U8")
         measured = np.asarray(getattr(getattr(self, "rgb", None), "specular", np.zeros(0, bool)), bool)
         again = []
         for c in range(min(len(alpha), len(new))):
-            if new[c] == alpha[c]:
+            if new[c] == alpha[c] and new_lobes[c] == lobes[c]:
                 continue
-            swept = c < len(model) and (model[c] == "ward" or (c < len(measured) and measured[c]))
-            if swept and abs(new[c] / alpha[c] - 1.0) > 0.01:
-                again.append(f"cluster {c} {alpha[c]:.3f} -> {new[c]:.3f}")
-            alpha[c], sigma[c] = new[c], new_sigma[c]
+            swept = c < len(model) and (model[c] != "diffuse" or (c < len(measured) and measured[c]))
+            if swept and (abs(new[c] / alpha[c] - 1.0) > 0.01 or new_lobes[c] != lobes[c]):
+                again.append(f"cluster {c} {lobes[c]} {alpha[c]:.3f} -> {new_lobes[c]} {new[c]:.3f}")
+            alpha[c], sigma[c], lobes[c] = new[c], new_sigma[c], new_lobes[c]
         if again:
             self._note("rgb: the final clusters' lobes moved by more than 1 % (" + ", ".join(again)
                        + "): their rho_s is measured once more")
         self._publish(force=True, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32))
-        return alpha, sigma, bool(again)
+        return alpha, sigma, lobes, bool(again)
 
     def _refit_ir(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
-                  what: str = "the colour pass's clusters") -> tuple[np.ndarray, np.ndarray]:
+                  what: str = "the colour pass's clusters", lobes=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """IR Ward fits of the clusters the colour pass left (split / merged), from the IR pass's buffers.
 
         A material the IR clustering could not tell apart (the demo's near-matte label, inside the
         paint's cluster) dilutes the cluster's lobe: on the demo the one IR cluster fitted alpha 0.051,
         while the paint's and the label's leaves fitted alone give 0.066 and 0.345 (truth 0.06 and
-        0.35). Returns alpha and alpha_sigma per cluster; a cluster without a fit (or at a bound)
-        keeps the given alpha. Without the IR pass's buffers (its stage reused from an older checkpoint)
+        0.35). Returns alpha, alpha_sigma and the lobe's name per cluster (the IR fit chooses Ward or
+        GGX, :mod:`appfusion.ward_fit`); a cluster without a fit (or at a bound) keeps the given alpha
+        and lobe (``lobes``, default Ward). Without the IR pass's buffers (its stage reused from an older checkpoint)
         nothing is refitted, and the scan log says so.
         """
+        lobes = np.full(len(alpha), "ward", dtype="<U8") if lobes is None else np.array(lobes, dtype="<U8")
         if self.ir is None:
             self._note("rgb: the IR clusters' lobes were not refitted to the colour pass's clusters (the IR "
                        "pass was reused from a checkpoint, without the leaf HBSABs: written by an older engine)")
-            return alpha, sigma
+            return alpha, sigma, lobes
         alpha, sigma = alpha.copy(), sigma.copy()
         fitted = []
         infos = self.ir.fit_clusters(self._interior_labels(labels))[:len(alpha)]
@@ -1553,14 +1587,15 @@ class ScanRunner:
             if f is not None and not f.at_bound and np.isfinite(f.alpha):
                 alpha[c.label] = f.alpha
                 sigma[c.label] = f.alpha_sigma
-                fitted.append(f"cluster {c.label} alpha {f.alpha:.3f}")
+                lobes[c.label] = getattr(f, "lobe", "ward")
+                fitted.append(f"cluster {c.label} {lobes[c.label]} alpha {f.alpha:.3f}")
         if fitted:
             self._note(f"rgb: IR lobes refitted to {what}: " + ", ".join(fitted))
         # the GUI and the report show these clusters' buffers, lobes and alphas from now on, not the IR's
         hb = [c.hbsab.value[0].copy() if c.hbsab is not None else None for c in infos]
         self._publish(force=True, hbsabs=hb, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32),
                       hbsab_fits=[self._ward_image(c) if h is not None else None for c, h in zip(infos, hb)])
-        return alpha, sigma
+        return alpha, sigma, lobes
 
     def _interior_labels(self, labels: np.ndarray) -> np.ndarray:
         """``labels`` with the points within ``ir_interior_m`` of another cluster moved to an extra label
@@ -1657,6 +1692,7 @@ class ScanRunner:
     # -- results -------------------------------------------------------------------------------------
     def result(self):
         """The :class:`~appfusion.result.ScanResult` so far (partial before the scan ends)."""
+        from .brdf import LOBES
         from .result import ScanResult
 
         if self.points is None:
@@ -1669,10 +1705,12 @@ class ScanRunner:
         alpha = np.full(k, 0.3, np.float32)
         sigma = np.zeros(k, np.float32)
         model = ["diffuse"] * k
+        lobes = np.full(k, "ward", dtype="<U8")
         if ir is not None:
             m = min(k, len(ir["alpha"]))
             alpha[:m], sigma[:m] = ir["alpha"][:m], ir["alpha_sigma"][:m]
-            model[:m] = ["ward" if f else "diffuse" for f in ir["fitted"][:m]]
+            lobes[:m] = _ir_lobes(ir, len(ir["alpha"]))[:m]
+            model[:m] = [str(lb) if f else "diffuse" for f, lb in zip(ir["fitted"][:m], lobes[:m])]
         if rgb is not None and "labels" in rgb and "alpha" in rgb:
             # the RGB pass refined the clusters (split / merged): its alphas are the clusters' alphas;
             # an IR sigma is kept where the cluster's alpha is an IR cluster's own
@@ -1684,7 +1722,9 @@ class ScanRunner:
             if "alpha_sigma" in rgb:                          # lobes refitted to these clusters (_refit_ir)
                 rs = np.asarray(rgb["alpha_sigma"], np.float32)[:m]
                 sigma[:m] = np.where(np.isfinite(rs), rs, sigma[:m])
-            model[:m] = ["ward"] * m
+            if "lobe" in rgb:
+                lobes[:m] = np.asarray(rgb["lobe"], str)[:m]
+            model[:m] = [str(lb) for lb in lobes[:m]]
         rho_s = np.zeros((k, 3), np.float32)
         rho_s_sigma = np.full((k, 3), np.nan, np.float32)
         rho_d = np.full((len(P), 3), 0.5, np.float32)
@@ -1699,7 +1739,7 @@ class ScanRunner:
             for c, mm in enumerate(np.asarray(rgb["model"]).tolist()[:k]):
                 if mm == "diffuse":
                     model[c] = "diffuse"
-        model = [("ward" if (mm == "ward" and rho_s[c].max() > 0) else "diffuse") for c, mm in enumerate(model)]
+        model = [(mm if (mm in LOBES and rho_s[c].max() > 0) else "diffuse") for c, mm in enumerate(model)]
         V, F = self.mesh if self.mesh is not None else (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
         info = {"timings": self.timings, "messages": self.messages, "config": self.config.to_json(),
                 "rho_d_source": "rgb pass (Eq. 6)" if rgb is not None else "not estimated (0.5 grey)",
@@ -1923,7 +1963,7 @@ class ScanRunner:
         figs: dict[str, Path] = {}
         snap = self.snapshot()
         if snap.hbsabs:
-            figs["HBSAB of each cluster with its fitted Ward lobe (§5.1)"] = fig_hbsabs(
+            figs["HBSAB of each cluster with its fitted lobe, Ward or GGX (§5.1)"] = fig_hbsabs(
                 [h for h in snap.hbsabs if h is not None], snap.hbsab_fits or [], rep / "hbsabs.png")
         if snap.history or len(res.alpha):                  # resumed from checkpoints: the markers alone
             figs["Convergence of alpha and rho_s over frames (lines: the live sweep; markers: the exported "

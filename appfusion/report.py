@@ -93,7 +93,7 @@ def fig_convergence(history: dict[str, list], path: Path, final: dict | None = N
     cluster and swept again ends with other clusters and values, which only the markers show."""
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
-    for key, ax, label in (("alpha", axes[0], "Ward alpha"), ("rho_s", axes[1], "rho_s (mean of RGB)")):
+    for key, ax, label in (("alpha", axes[0], "lobe roughness alpha"), ("rho_s", axes[1], "rho_s (mean of RGB)")):
         h = history.get(key) or []
         x_end = 1.0
         if h:
@@ -128,7 +128,7 @@ def fig_convergence(history: dict[str, list], path: Path, final: dict | None = N
 
 
 def fig_hbsabs(hbsabs: list[np.ndarray], fits: list[np.ndarray | None], path: Path) -> Path:
-    """Each cluster's merged HBSAB (mean IR value over half vectors) beside its fitted Ward lobe."""
+    """Each cluster's merged HBSAB (mean IR value over half vectors) beside its fitted lobe (Ward or GGX)."""
     plt = _plt()
     k = max(1, len(hbsabs))
     fig, axes = plt.subplots(2, k, figsize=(3 * k, 6), squeeze=False)
@@ -138,7 +138,7 @@ def fig_hbsabs(hbsabs: list[np.ndarray], fits: list[np.ndarray | None], path: Pa
             axes[0, c].set_title(f"cluster {c}: HBSAB")
             if c < len(fits) and fits[c] is not None:
                 axes[1, c].imshow(fits[c], cmap="inferno", vmin=np.nanmin(hbsabs[c]), vmax=np.nanmax(hbsabs[c]))
-                axes[1, c].set_title("fitted Ward lobe")
+                axes[1, c].set_title("fitted lobe")
         for r in range(2):
             axes[r, c].set_xticks([]), axes[r, c].set_yticks([])
     fig.tight_layout()
@@ -185,7 +185,7 @@ def write_report(out_dir: str | os.PathLike, result: ScanResult, *, title: str =
     figs: dict[str, Path] = {}
     if len(result.positions):
         models = list(result.model or [])
-        kinds = ", ".join(f"{c}: {m}" + (f" alpha {result.alpha[c]:.3f}" if m == "ward" else "")
+        kinds = ", ".join(f"{c}: {m}" + (f" alpha {result.alpha[c]:.3f}" if m != "diffuse" else "")
                           for c, m in enumerate(models)) if models else ""
         figs["Material clusters (§5.2)"] = fig_points(result, cluster_colours(result.labels), rep / "clusters.png",
                                                       f"{result.n_clusters} cluster(s)" + (f" ({kinds})" if kinds else ""))
@@ -209,7 +209,7 @@ def write_report(out_dir: str | os.PathLike, result: ScanResult, *, title: str =
              f"<h1>{html.escape(title)}</h1>"]
     for n in notes or []:
         parts.append(f"<p>{html.escape(n)}</p>")
-    parts.append("<h2>Materials (paper Eq. 1: rho_d/pi + rho_s Ward(alpha))</h2><table><tr><th>cluster</th>"
+    parts.append("<h2>Materials (paper Eq. 1: rho_d/pi + rho_s f(alpha), f the model's lobe: Ward, or GGX)</h2><table><tr><th>cluster</th>"
                  "<th>model</th><th>alpha</th><th>rho_s (RGB)</th><th>rho_s standard error</th><th>points</th></tr>" + "".join(rows) + "</table>")
     for t, table in (tables or {}).items():
         parts.append(f"<h2>{html.escape(t)}</h2><table>")

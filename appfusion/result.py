@@ -1,7 +1,8 @@
 """The result of a scan: geometry plus the SVBRDF of paper Eq. 1, as plain arrays.
 
 Per sampled point (§4.1): position, normal, diffuse albedo rho_d (RGB) and cluster label (§5.2);
-per cluster: specular intensity rho_s (RGB) and Ward roughness alpha (with its uncertainty); the
+per cluster: specular intensity rho_s (RGB), the lobe (``model``: diffuse, Ward or GGX) and its
+roughness alpha (with its uncertainty); the
 object mesh; the environment map in the marker frame (§4.3). Saved as one ``result.npz`` that
 ``appfusion render`` and the GUI read back.
 """
@@ -45,13 +46,14 @@ class ScanResult:
     rho_s : (C, 3) float32
         Specular intensity per cluster (linear RGB).
     alpha, alpha_sigma : (C,) float32
-        Ward roughness per cluster and its 1-sigma uncertainty.
+        Roughness of each cluster's lobe (``model``) and its 1-sigma uncertainty.
     mesh_vertices : (V, 3) float32, mesh_faces : (F, 3) int32
         Triangle mesh of the object (may be empty until exported).
     envmap : (2, N, N, 3) float32 or None
         Environment radiance in the octahedral layout of :mod:`appfusion.octahedral`.
     model : (C,) list of str
-        Reflectance model chosen per cluster ("diffuse", "ward").
+        Reflectance model chosen per cluster: "diffuse", "ward" or "ggx" (the lobe alpha belongs to;
+        :data:`appfusion.brdf.LOBES`).
     info : dict
         Free-form provenance (session, frames used per pass, timings).
     rho_s_sigma : (C, 3) float32
@@ -94,6 +96,9 @@ class ScanResult:
                 raise ValueError(f"ScanResult: {name} has {len(a)} rows, positions has {P}")
         if len(self.rho_s) != C or len(self.alpha_sigma) != C or len(self.rho_s_sigma) != C:
             raise ValueError(f"ScanResult: rho_s/alpha_sigma/rho_s_sigma must have one row per cluster ({C})")
+        if len(self.model) != C or any(m not in ("diffuse", "ward", "ggx") for m in self.model):
+            raise ValueError(f"ScanResult: model must name one of diffuse, ward, ggx per cluster ({C}), "
+                             f"got {list(self.model)}")
         if P and (self.labels.min() < 0 or self.labels.max() >= C):
             raise ValueError(f"ScanResult: labels must lie in 0..{C - 1}")
 

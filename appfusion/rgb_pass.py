@@ -67,6 +67,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .brdf import LOBES
 from .diffuse_term import envmap_check
 from .double_product import DoubleProductTables
 from .envmap import effective_alpha
@@ -100,8 +101,9 @@ class RGBResult:
         Warnings (clusters without samples, ...).
     model : list of str
         Per cluster, the rung of the model ladder chosen by held-out error (``"lsq"`` estimator):
-        ``"diffuse"`` (rho_s = 0) or ``"ward"``; ``"ward"`` for every cluster with the percentile
-        estimator.
+        ``"diffuse"`` (rho_s = 0) or the cluster's lobe (``"ward"``, or ``"ggx"`` where the IR pass
+        found a GGX lobe, :mod:`appfusion.ward_fit`); the cluster's lobe for every cluster with the
+        percentile estimator.
     heldout_rss : (C, 2) float64
         Held-out residual sum of squares per cluster of the diffuse-only and of the Ward model.
     heldout_z : (C,) float64
@@ -506,8 +508,16 @@ def _normal_order(normals: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def _ward_only(lobe) -> bool:
+    """True when ``lobe`` (a name or an array of names) names only Ward lobes."""
+    return lobe == "ward" if isinstance(lobe, str) else bool((np.asarray(lobe) == "ward").all())
+
+
 class RGBPass:
     """Streaming estimator of rho_d (per point) and rho_s (per cluster), paper §5.3.
+
+    GGX lobes (``lobes``) take at least ``NEAR_FIELD_GGX_MIN_SAMPLES`` (16) lobe samples for the
+    support plane's ``dS`` (:meth:`near_field_dS`).
 
     Parameters
     ----------
@@ -516,7 +526,7 @@ class RGBPass:
     labels : (P,) int array
         Cluster of each point, in ``[0, C)``.
     alphas : (C,) array
-        Ward roughness of each cluster (IR pass).
+        Roughness of each cluster's lobe (IR pass).
     envmap : (2, N, N, 3) array
         Environment radiance in the world frame (lighting pass), ``appfusion.octahedral`` layout.
     tables : DoubleProductTables, optional
@@ -536,6 +546,10 @@ class RGBPass:
         samples scatter by ~5 %); the least-squares mean is not.
     min_lsq_samples : int
         Samples a point needs before its least-squares rho_d replaces the percentile (default 3).
+    lobes : (C,) sequence of str, optional
+        Each cluster's specular lobe, one of :data:`appfusion.brdf.LOBES` (default all ``"ward"``, the
+        paper's); ``"ggx"`` is the model ladder's third rung, chosen by the IR pass's fit. S is read
+        from the double-product tables of each point's own lobe and alpha.
     specular : (C,) bool array, optional
         Clusters that may have a specular lobe (default all). A cluster the IR pass found diffuse
         (model ladder's first rung) gets ``S = 0``: no double-product table is built for its alpha
@@ -602,11 +616,14 @@ class RGBPass:
         independent (default 4 mm: a few pixels on the object at 1 m; docs/rgb-pass.md §5i).
     """
 
+    #: lobe samples of the support plane's dS for a GGX lobe, at least (:meth:`near_field_dS`)
+    NEAR_FIELD_GGX_MIN_SAMPLES = 16
+
     def __init__(self, positions, normals, labels, alphas, envmap, *, tables: DoubleProductTables | None = None,
                  bins: int = 64, ratio_range: tuple[float, float] = (1 / 64, 2.0), percentile: float = 10.0,
                  estimator: str = "lsq", min_lsq_samples: int = 3, ladder_margin: float = 0.002,
                  ladder_z: float = 5.0, ladder_margin_z: float = 3.0, interior_m: float = 0.005,
-                 specular=None,
+                 specular=None, lobes=None,
                  dark: float = 0.01, saturated: float = 0.98, min_cos: float = math.cos(math.radians(75)),
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
                  depth_tol: float = 0.01, table_kwargs: dict | None = None, near_field=None,
@@ -655,21 +672,32 @@ class RGBPass:
             raise AppFusionError(f"RGBPass: specular must be {len(al)} flags (one per cluster), got {spec.shape}")
         self.specular = spec
         self._spec_point = spec[self.labels]
-        used = np.unique(al[np.unique(self.labels[self._spec_point])]) if self._spec_point.any() else np.zeros(0)
+        lob = np.array(["ward"] * len(al) if lobes is None else [str(x) for x in np.asarray(lobes).reshape(-1)], dtype="<U8")
+        if lob.shape != al.shape or not np.isin(lob, LOBES).all():
+            raise AppFusionError(f"RGBPass: lobes must be {len(al)} names (one per cluster) among {LOBES}, "
+                                 f"got {list(lob)}")
+        self.lobes = lob
+        self.point_lobe = lob[self.labels]                      # (P,) the lobe of each point's S sums
+        spec_cl = np.unique(self.labels[self._spec_point])
+        used = {lb: np.unique(al[spec_cl[lob[spec_cl] == lb]]) for lb in LOBES}
         cmp_al = np.zeros(0) if compare_alphas is None else np.asarray(compare_alphas, np.float64).reshape(-1)
         if not (np.isfinite(cmp_al).all() and (cmp_al > 0).all()):
             raise AppFusionError(f"RGBPass: compare_alphas must be positive finite roughnesses, got {cmp_al}")
         self.compare_alphas = cmp_al
-        used = np.unique(np.r_[used, cmp_al])
+        used["ward"] = np.unique(np.r_[used["ward"], cmp_al])         # compare lobes are Ward lobes
         if not (np.isfinite(map_blur_var) and map_blur_var >= 0):
             raise AppFusionError(f"RGBPass: map_blur_var must be a finite variance >= 0 (rad^2), got {map_blur_var}")
         self.map_blur_var = float(map_blur_var)
-        used = np.unique(self._map_alpha(used))
+        used = {lb: np.unique(self._map_alpha(a)) for lb, a in used.items()}
         if tables is None:
-            tables = DoubleProductTables(env, used, **(table_kwargs or {}))
+            tables = DoubleProductTables(env, used["ward"], **(table_kwargs or {}))
         else:
-            for a in used:
+            for a in used["ward"]:
                 tables.add_alpha(float(a))
+        for lb, a_lb in used.items():
+            if lb != "ward":
+                for a in a_lb:
+                    tables.add_alpha(float(a), lobe=lb)
         self.tables = tables
         self.table_seconds = time.perf_counter() - t0
         self.D = tables.D(N).astype(np.float32)                      # (P, 3), fixed per point
@@ -695,7 +723,7 @@ class RGBPass:
         self.interior_m = float(interior_m)
         self._interior_key = None
         self.heldout_z = None
-        self.model: list = ["ward"] * len(al)
+        self.model: list = [str(x) for x in lob]
         self.heldout_rss = None
         self.rho_s_ward = None
         self.rho_s_sigma = None
@@ -958,11 +986,12 @@ class RGBPass:
         sp = self._spec_point[p]
         seed = self.frames * 7919 + st["samples"]
         if sp.all():
-            S = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed)           # (k, 3) float32
+            S = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed, self.point_lobe[p])   # (k, 3) float32
         else:                                                 # diffuse-only clusters: S = 0, no table
             S = np.zeros((len(p), 3), np.float32)
             if sp.any():
-                S[sp] = self._lobe_S(p[sp], nrm[sp], wo[sp], self.point_alpha[p[sp]], seed)
+                q = p[sp]
+                S[sp] = self._lobe_S(q, nrm[sp], wo[sp], self.point_alpha[q], seed, self.point_lobe[q])
         Sc = self._compare_S(p, nrm, wo, sp, seed=seed + 1)
         if unique:
             self._accumulate(p, L, S, Sc)
@@ -982,23 +1011,49 @@ class RGBPass:
             return alpha
         return effective_alpha(alpha, self.map_blur_var)
 
-    def _lobe_S(self, p, nrm, wo, alpha, seed: int) -> np.ndarray:
-        """S (k, 3) float32 of samples of internal points ``p`` with normals, views (k, 3) and lobes
-        ``alpha`` (k,): the double product (§5.3), plus the support plane's ``dS`` (clamped at 0) when
-        the near field is on."""
-        S = self.tables.S(nrm, wo, self._map_alpha(alpha))
+    def table_S(self, nrm, wo, alpha_eff, lobe="ward") -> np.ndarray:
+        """The tables' S (k, 3) float32 at normals and views (k, 3), effective roughness ``alpha_eff``
+        (:meth:`_map_alpha`) and lobe names ``lobe`` (str or (k,))."""
+        if _ward_only(lobe):
+            return self.tables.S(nrm, wo, alpha_eff)
+        return self.tables.S(nrm, wo, alpha_eff, lobe=lobe)
+
+    def _lobe_S(self, p, nrm, wo, alpha, seed: int, lobe="ward") -> np.ndarray:
+        """S (k, 3) float32 of samples of internal points ``p`` with normals, views (k, 3), roughness
+        ``alpha`` (k,) and lobe names ``lobe`` (str or (k,)): the double product (§5.3), plus the
+        support plane's ``dS`` (clamped at 0) when the near field is on."""
+        S = self.table_S(nrm, wo, self._map_alpha(alpha), lobe)
         if self.near_field is not None:
-            pos = self.positions.take(p, axis=0)
-            dS = self.near_field.delta_S(pos, nrm, wo, alpha, n_samples=self.near_field_samples, seed=seed)
+            dS = self.near_field_dS(self.positions.take(p, axis=0), nrm, wo, alpha, lobe, seed)
             S = np.maximum(S + dS, 0.0).astype(np.float32)
         return S
+
+    def near_field_dS(self, pos, nrm, wo, alpha, lobe, seed: int) -> np.ndarray:
+        """The support plane's ``dS`` (k, 3) (:meth:`appfusion.near_field.SupportPlaneLight.delta_S`) with
+        ``near_field_samples`` lobe samples, and at least :attr:`NEAR_FIELD_GGX_MIN_SAMPLES` for GGX
+        lobes: a GGX tail sees far more of the plane than a Ward lobe of the same alpha, and with 4
+        samples its ``dS`` scattered by twice its size (Ward: half), which the regression of L on S
+        reads as a weaker lobe -- the ggx-sphere's underside (normals towards the paper) split off as
+        "less specular" (labels 0.87); with 16, none did (session 36)."""
+        if _ward_only(lobe):
+            return self.near_field.delta_S(pos, nrm, wo, alpha, n_samples=self.near_field_samples, seed=seed)
+        lb = np.broadcast_to(np.asarray(lobe), (len(pos),))
+        g = lb == "ggx"
+        al = np.broadcast_to(np.asarray(alpha, np.float64), (len(pos),))
+        out = np.zeros((len(pos), 3))
+        if (~g).any():
+            out[~g] = self.near_field.delta_S(pos[~g], nrm[~g], wo[~g], al[~g], n_samples=self.near_field_samples,
+                                              seed=seed)
+        out[g] = self.near_field.delta_S(pos[g], nrm[g], wo[g], al[g], seed=seed + 1, lobe="ggx",
+                                         n_samples=max(self.near_field_samples, self.NEAR_FIELD_GGX_MIN_SAMPLES))
+        return out
 
     def _compare_S(self, p, nrm, wo, sp, seed: int) -> list:
         """Per compare alpha: (need (k,) bool, S (k, 3) float32) for the samples of points whose own
         lobe is another one (or none); S is 0 where not needed."""
         out = []
         for m, a in enumerate(self.compare_alphas):
-            need = ~(sp & np.isclose(self.point_alpha[p], a, rtol=1e-6, atol=0.0))
+            need = ~(sp & np.isclose(self.point_alpha[p], a, rtol=1e-6, atol=0.0) & (self.point_lobe[p] == "ward"))
             Sm = np.zeros((len(p), 3), np.float32)
             i = np.flatnonzero(need)
             if len(i):
@@ -1174,7 +1229,7 @@ class RGBPass:
         mean = g_sum / np.maximum(g_n, 1)
         sd = np.sqrt(np.maximum(g_sq / np.maximum(g_n, 1) - mean ** 2, 0.0))
         z = np.where(g_n > 1, mean / np.maximum(sd / np.sqrt(np.maximum(g_n, 1)), 1e-300), 0.0)
-        self.model = ["ward" if (self.specular[c] and ok[c].any() and rss[c, 1] < rss[c, 0]
+        self.model = [str(self.lobes[c]) if (self.specular[c] and ok[c].any() and rss[c, 1] < rss[c, 0]
                                  and ((rss[c, 1] < (1 - self.ladder_margin) * rss[c, 0] and z[c] >= self.ladder_margin_z)
                                       or z[c] >= self.ladder_z))
                       else "diffuse"
@@ -1183,7 +1238,7 @@ class RGBPass:
         self.heldout_z = z
         self.rho_s_ward = rho_s
         self.rho_s_sigma = self.rho_s_standard_error(inner, cov, var, num, den)
-        rho_s = np.where(np.array([m == "ward" for m in self.model])[:, None], rho_s, 0.0)
+        rho_s = np.where(np.array([m != "diffuse" for m in self.model])[:, None], rho_s, 0.0)
         D = np.maximum(self.D.astype(np.float64), 1e-12)
         rd = (self.sum_l - rho_s[lab] * self.sum_s) / nn / D
         if self.diffuse_tau is not None:
@@ -1325,6 +1380,7 @@ class RGBPass:
             new = self.n_clusters
             self.labels = np.where(low, new, self.labels)
             self.alphas = np.r_[self.alphas, self.alphas[c]]
+            self.lobes = np.append(self.lobes, self.lobes[c])
             self.specular = np.r_[self.specular, False]
             self.model = list(self.model) + ["diffuse"]
             self._spec_point = self.specular[self.labels]
@@ -1344,7 +1400,8 @@ class RGBPass:
             pair = None
             for i in range(self.n_clusters):
                 for j in range(i + 1, self.n_clusters):
-                    if cnt[i] == 0 or cnt[j] == 0 or self.specular[i] != self.specular[j]:
+                    if (cnt[i] == 0 or cnt[j] == 0 or self.specular[i] != self.specular[j]
+                            or self.lobes[i] != self.lobes[j]):
                         continue
                     a, b = self.alphas[i], self.alphas[j]
                     if abs(a - b) > alpha_rel * 0.5 * (a + b):
@@ -1361,6 +1418,7 @@ class RGBPass:
             self.alphas = self.alphas.copy()
             self.alphas[i] = (cnt[i] * self.alphas[i] + cnt[j] * self.alphas[j]) / (cnt[i] + cnt[j])
             self.alphas = np.delete(self.alphas, j)
+            self.lobes = np.delete(self.lobes, j)
             self.specular = np.delete(self.specular, j)
             self.model = [m for c, m in enumerate(self.model) if c != j]
             lab = np.where(self.labels == j, i, self.labels)
@@ -1425,7 +1483,8 @@ class RGBPass:
             if not (lab == c).any():
                 continue
             rs_c = np.asarray(res.rho_s[c], np.float64)
-            hit = np.flatnonzero(np.isclose(self.compare_alphas, self.alphas[c], rtol=1e-6, atol=0.0))
+            hit = (np.flatnonzero(np.isclose(self.compare_alphas, self.alphas[c], rtol=1e-6, atol=0.0))
+                   if self.lobes[c] == "ward" else np.zeros(0, np.int64))      # compare lobes are Ward's
             as_diffuse = res.model[c] == "diffuse" or rs_c.max() <= 0
             if not as_diffuse and len(hit) == 0:
                 # its lobe was not measured on the other points. A lobe that explains almost none of
@@ -1441,7 +1500,8 @@ class RGBPass:
                 var.append(np.zeros_like(vll))
                 continue
             m = int(hit[0])
-            own = (self._spec_point & np.isclose(self.point_alpha, self.alphas[c], rtol=1e-6, atol=0.0))[:, None]
+            own = (self._spec_point & np.isclose(self.point_alpha, self.alphas[c], rtol=1e-6, atol=0.0)
+                   & (self.point_lobe == "ward"))[:, None]
             s = np.where(own, self.sum_s, self.cmp_s[m])
             s2 = np.where(own, self.sum_s2, self.cmp_s2[m])
             sl = np.where(own, self.sum_sl, self.cmp_sl[m])
@@ -1474,6 +1534,7 @@ class RGBPass:
         self.labels = new.astype(np.int64)
         self._spec_point = self.specular[self.labels]
         self.point_alpha = self.alphas[self.labels]
+        self.point_lobe = self.lobes[self.labels]
         return int(moved.sum())
 
     def labels_caller_order(self) -> np.ndarray:
@@ -1512,7 +1573,7 @@ class RGBPass:
                 m = (lab == c) & observed
                 out[(lab == c) & ~observed] = np.median(rd[m], axis=0) if m.any() else 0.0
         r = self._rank                                        # back to the caller's point order
-        model = list(self.model) if self.estimator == "lsq" else ["ward"] * C
+        model = list(self.model) if self.estimator == "lsq" else [str(x) for x in self.lobes]
         return RGBResult(out[r].astype(np.float32), rho_s.astype(np.float32), counts[r], observed[r], csamp,
                          den, notes, model=model, heldout_rss=self.heldout_rss,
                          rho_s_ward=self.rho_s_ward if self.estimator == "lsq" else None,

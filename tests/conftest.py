@@ -56,3 +56,14 @@ def kinect_sphere(tmp_path_factory):
     out = tmp_path_factory.mktemp("kinect") / "sphere"
     return render_session("sphere", out, frames=12, size=(320, 240), seed=1, detail="test", references=False,
                           show_progress=False)
+
+
+@pytest.fixture(scope="session")
+def kinect_ggx_sphere(tmp_path_factory):
+    """The same short scan of the ``ggx-sphere`` (a GGX lobe, alpha 0.15, rho_s 0.22: the model ladder's
+    third rung), rendered once per test session (~10 s)."""
+    from replay.synth import render_session
+
+    out = tmp_path_factory.mktemp("kinect") / "ggx-sphere"
+    return render_session("ggx-sphere", out, frames=12, size=(320, 240), seed=1, detail="test", references=False,
+                          show_progress=False)

@@ -220,31 +220,34 @@ def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_mo
     """After the second sweep moved points between clusters, the IR lobes are fitted once more: every
     cluster takes its new alpha; a cluster whose S was in the sums (Ward, or made diffuse by the model
     ladder) and whose alpha moved by more than 1 % (its rho_s was measured, and the ladder chose, with
-    the old one) asks for a third sweep. Nothing happens without the IR pass's buffers."""
+    the old one), or whose lobe changed (Ward -> GGX, the model ladder's third rung), asks for a third
+    sweep. Nothing happens without the IR pass's buffers."""
     r = ScanRunner.__new__(ScanRunner)
     notes = []
     r._note = notes.append
     r.ir = None                                                     # an IR stage reused from a checkpoint
     a0 = np.array([0.06, 0.33], np.float32)
-    out = r._refit_ir_final(np.zeros(5, np.int32), a0, a0, ["ward", "diffuse"])
-    assert out[0] is a0 and out[2] is False and not notes
+    out = r._refit_ir_final(np.zeros(5, np.int32), a0, a0, ["ward", "diffuse"], ["ward", "ward"])
+    assert out[0] is a0 and list(out[2]) == ["ward", "ward"] and out[3] is False and not notes
     r.ir = object()                                                 # the IR pass's buffers are in memory
     published = {}
     r._publish = lambda force=False, **kw: published.update(kw)
     alpha = np.array([0.060, 0.330, 0.200], np.float32)
     sigma = np.array([0.001, 0.014, 0.010], np.float32)
     new = [np.array([0.0603, 0.346, 0.200], np.float32), np.array([0.0009, 0.010, 0.010], np.float32)]
-    r._refit_ir = lambda labels, a, s, what="": (new[0], new[1])
-    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    lobes = np.array(["ward", "ward", "ward"])
+    new_lobes = [lobes.copy()]
+    r._refit_ir = lambda labels, a, s, what="", lobes=None: (new[0], new[1], new_lobes[0])
+    a, s, lb, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"], lobes)
     np.testing.assert_allclose(a, [0.0603, 0.346, 0.200], rtol=1e-6)
     np.testing.assert_allclose(s, [0.0009, 0.010, 0.010], rtol=1e-6)
     assert again is False and not notes                              # +0.5 % on a Ward cluster: no sweep
     assert alpha[1] == np.float32(0.330)                            # the caller's arrays are not changed
     np.testing.assert_allclose(published["alpha"], a)               # what the GUI shows is what is exported
     new[0] = np.array([0.0603, 0.346, 0.230], np.float32)           # a Ward cluster moved by 15 %
-    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    a, s, lb, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"], lobes)
     assert again is True and a[2] == np.float32(0.230)
-    assert len(notes) == 1 and "cluster 2 0.200 -> 0.230" in notes[0]
+    assert len(notes) == 1 and "cluster 2 ward 0.200 -> ward 0.230" in notes[0]
     # a cluster the model ladder made diffuse was judged with the S of its old lobe: it moved by 4.8 %,
     # so it too asks for a sweep (session 31: the bench scan's label, swept at 0.067, refitted 0.317) ...
     from types import SimpleNamespace
@@ -252,13 +255,45 @@ def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_mo
     new[0] = np.array([0.0603, 0.346, 0.200], np.float32)
     r.rgb = SimpleNamespace(specular=np.array([True, True, True]))
     notes.clear()
-    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
-    assert again is True and len(notes) == 1 and "cluster 1 0.330 -> 0.346" in notes[0]
+    a, s, lb, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"], lobes)
+    assert again is True and len(notes) == 1 and "cluster 1 ward 0.330 -> ward 0.346" in notes[0]
     # ... but not one without S in its sums (no lobe in IR)
     r.rgb = SimpleNamespace(specular=np.array([True, False, True]))
     notes.clear()
-    a, s, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"])
+    a, s, lb, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ward"], lobes)
     assert again is False and not notes
+    # a cluster whose refit chose the other lobe at the same alpha: its S changes, so a sweep
+    new_lobes[0] = np.array(["ward", "ward", "ggx"])
+    new[0] = np.array([0.0603, 0.330, 0.200], np.float32)
+    a, s, lb, again = r._refit_ir_final(np.zeros(5, np.int32), alpha, sigma, ["ward", "diffuse", "ggx"], lobes)
+    assert again is True and list(lb) == ["ward", "ward", "ggx"] and list(lobes) == ["ward"] * 3
+    assert "cluster 2 ward 0.200 -> ggx 0.200" in notes[-1]
+
+
+def test_a_ggx_highlight_is_scanned_as_ggx_end_to_end(kinect_ggx_sphere, tmp_path):
+    """The model ladder's GGX rung through the whole pipeline: the IR fit keeps the GGX lobe, the colour
+    pass reads S from GGX tables and keeps it, the result, its checkpoint reload and the .glb name it;
+    with ``ir_lobes=("ward",)`` (the paper's model only) the same session is scanned as Ward."""
+    import trimesh
+
+    from appfusion.result import ScanResult
+
+    r, res = _run(kinect_ggx_sphere, tmp_path / "ggx", n_points=5000)
+    assert res.model == ["ggx"], (res.model, r.messages)
+    # (rho_s is in the units of the truth's map _run lends the scan, not the capture's white units)
+    assert abs(res.alpha[0] / 0.15 - 1) < 0.08 and (res.rho_s[0] > 0).all(), (res.alpha, res.rho_s)
+    assert any("ggx alpha" in m or "cluster 0 ggx" in m for m in r.messages), r.messages
+    files = r.export()
+    assert ScanResult.load(tmp_path / "ggx").model == ["ggx"]
+    geom = list(trimesh.load(files["glb"]).geometry.values())
+    assert geom and geom[0].metadata["extras"]["appfusion"]["cluster_model"] == ["ggx"]
+    r2, res2 = _run(kinect_ggx_sphere, tmp_path / "ggx", n_points=5000)  # every stage from its checkpoint
+    assert res2.model == ["ggx"] and res2.alpha[0] == res.alpha[0]
+    assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
+    _, ward = _run(kinect_ggx_sphere, tmp_path / "ward", n_points=5000, ir_lobes=("ward",))
+    assert ward.model == ["ward"]
+    with pytest.raises(AppFusionError, match="ir_lobes"):
+        ScanRunner(SessionReader(kinect_ggx_sphere), tmp_path / "bad", ScanConfig(ir_lobes=("ward", "phong")))
 
 
 def test_geometry_poses_passed_on_are_only_those_of_tracked_frames():

@@ -773,3 +773,35 @@ def test_clip_correction_with_a_specular_lobe(sphere_run):
     np.testing.assert_allclose(rs[True], rho_s, rtol=0.08)
     assert est[False][2] > 0.2                                        # clipped blue reads high
     assert abs(est[True][1]) < 0.05 and abs(est[True][2]) < 0.1
+
+
+def test_a_ggx_cluster_reads_its_own_tables_and_the_ladder_names_its_lobe(sphere_run):
+    """A cluster the IR pass fitted with a GGX lobe (the model ladder's third rung, ``lobes``): its
+    samples read S from the GGX tables of its alpha, its rho_s is recovered and its model is "ggx";
+    the same samples read with a Ward lobe of that alpha fit them worse (held-out residuals)."""
+    from appfusion.bench.stages.rgb import facing_points
+
+    sc, poses, _, rp0, _ = sphere_run
+    lobes = np.array(["ggx", "ward"])
+    rs_true = np.array([[0.30, 0.25, 0.20], [0.2, 0.2, 0.2]])
+    rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, lobes=lobes)
+    rpw = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables)
+    assert list(rp.lobes) == ["ggx", "ward"] and rp0.tables.lobe_alphas("ggx") == [float(sc.alphas[0])]
+    D0 = rp.tables.D(sc.normals).astype(np.float64)
+    rng = np.random.default_rng(3)
+    for T in poses:
+        C, wo, vis = facing_points(sc, T)
+        lab = sc.labels[vis]
+        S = rp.tables.S(sc.normals[vis], wo[vis], sc.alphas[lab], lobe=lobes[lab]).astype(np.float64)
+        L = (D0[vis] * sc.rho_d[vis] + S * rs_true[lab]) * rng.uniform(0.97, 1.03, (len(vis), 3))
+        ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)
+        rp.add_samples(vis[ok], L[ok], C)
+        rpw.add_samples(vis[ok], L[ok], C)
+    res, resw = rp.result(), rpw.result()
+    assert res.model == ["ggx", "ward"], (res.model, res.heldout_rss)
+    assert np.abs(res.rho_s / rs_true - 1).max() < 0.03, res.rho_s
+    assert resw.model[0] == "ward"
+    assert resw.heldout_rss[0, 1] > 1.5 * res.heldout_rss[0, 1], (resw.heldout_rss, res.heldout_rss)
+    np.testing.assert_allclose(resw.rho_s[1], res.rho_s[1], rtol=1e-3)      # the Ward cluster as before
+    with pytest.raises(AppFusionError, match="lobes"):
+        RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, lobes=["ggx", "phong"])

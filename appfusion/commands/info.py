@@ -194,7 +194,7 @@ def format_result(d: dict[str, Any]) -> str:
     lines = [f"scan result {d['result']}",
              f"points      {d['points']}" + ("" if d["rho_d_median"] is None else
                                              "  (median rho_d " + ", ".join(f"{v:.3f}" for v in d["rho_d_median"]) + ")"),
-             "materials   (paper Eq. 1: rho_d/pi + rho_s Ward(alpha); ± one standard error)"]
+             "materials   (paper Eq. 1: rho_d/pi + rho_s f(alpha), f the model's lobe, Ward or GGX; ± one standard error)"]
     for c in d["clusters"]:
         rs = ", ".join(pm(v, s, ".4f") for v, s in zip(c["rho_s"], c["rho_s_sigma"]))
         a = pm(c['alpha'], c['alpha_sigma'], '.4f')

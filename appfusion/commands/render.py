@@ -9,7 +9,7 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("render", help="relight a scan result under an environment map from a view (PNG + EXR)",
-                       description="Renders the captured object (mesh + rho_d, rho_s, Ward alpha) under an "
+                       description="Renders the captured object (mesh + rho_d, rho_s, lobe alpha: Ward or GGX) under an "
                                    "environment map by Monte Carlo integration with self-shadowing.")
     p.add_argument("result", type=Path, help="scan output folder (with result.npz) or the result.npz itself")
     p.add_argument("--env", type=Path, help="environment map (.exr/.hdr lat-long, or .npz from a scan); "
