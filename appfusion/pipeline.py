@@ -357,6 +357,8 @@ class Snapshot:
         Sampled points once the geometry is fused.
     labels : (P,) int32 or None; rho_d : (P, 3) or None
     alpha, alpha_sigma : (C,) or None; rho_s : (C, 3) or None
+    lobes : list of str or None
+        The lobe each cluster's alpha belongs to, "ward" or "ggx" (the IR fit's choice).
     rho_s_sigma : (C, 3) or None
         Standard error of each cluster's rho_s per channel (``RGBResult.rho_s_sigma``, docs/rgb-pass.md
         §5i); NaN where unknown (the ``percentile`` estimator, a cluster without samples).
@@ -381,6 +383,7 @@ class Snapshot:
     rho_d: np.ndarray | None = None
     alpha: np.ndarray | None = None
     alpha_sigma: np.ndarray | None = None
+    lobes: list | None = None
     rho_s: np.ndarray | None = None
     rho_s_sigma: np.ndarray | None = None
     envmap: np.ndarray | None = None
@@ -1100,6 +1103,7 @@ class ScanRunner:
             self._restore_history("ir", "alpha")
             extra = {"hbsabs": hb, "hbsab_fits": fits} if hb else {}
             self._publish(force=True, labels=self._ir_result["labels"], alpha=self._ir_result["alpha"],
+                          lobes=[str(x) for x in _ir_lobes(self._ir_result, len(self._ir_result["alpha"]))],
                           history=self._snap.history, **extra)
             if leaf is not None and self.ir_profile is not None and self.points is not None:
                 # the BRDF cut's leaf buffers come back, so that the colour pass can refit the lobes
@@ -1203,7 +1207,8 @@ class ScanRunner:
         hist = self._snap.history
         hist.setdefault("alpha", []).append((used, arr["alpha"].tolist()))
         self._publish(force=force, labels=self._apply_paint_to(arr["labels"]), alpha=arr["alpha"],
-                      alpha_sigma=arr["alpha_sigma"], hbsabs=hb, hbsab_fits=fits, history=hist)
+                      alpha_sigma=arr["alpha_sigma"], lobes=[str(x) for x in arr["lobe"]], hbsabs=hb,
+                      hbsab_fits=fits, history=hist)
 
     def _ward_image(self, cluster) -> np.ndarray | None:
         """The fitted lobe on the HBSAB's square (w_i = w_o = h convention of §5.1)."""
@@ -1228,7 +1233,8 @@ class ScanRunner:
             fits = _unstack_images(rgb_arrays.pop("hbsab_fit_images", None))
             self._rgb_result = rgb_arrays
             if hb:
-                self._publish(force=True, hbsabs=hb, hbsab_fits=fits)
+                self._publish(force=True, hbsabs=hb, hbsab_fits=fits,
+                              **({"lobes": [str(x) for x in rgb_arrays["lobe"]]} if "lobe" in rgb_arrays else {}))
             if "normals" in rgb_arrays and self.points is not None:     # refined (_refine_normals)
                 self.points = (self.points[0], np.asarray(rgb_arrays["normals"], np.float32))
             restored = self._restore_history("rgb", "rho_s")
@@ -1559,7 +1565,8 @@ class ScanRunner:
         if again:
             self._note("rgb: the final clusters' lobes moved by more than 1 % (" + ", ".join(again)
                        + "): their rho_s is measured once more")
-        self._publish(force=True, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32))
+        self._publish(force=True, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32),
+                      lobes=[str(x) for x in lobes])
         return alpha, sigma, lobes, bool(again)
 
     def _refit_ir(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
@@ -1594,6 +1601,7 @@ class ScanRunner:
         # the GUI and the report show these clusters' buffers, lobes and alphas from now on, not the IR's
         hb = [c.hbsab.value[0].copy() if c.hbsab is not None else None for c in infos]
         self._publish(force=True, hbsabs=hb, alpha=np.asarray(alpha, np.float32), alpha_sigma=np.asarray(sigma, np.float32),
+                      lobes=[str(x) for x in lobes],
                       hbsab_fits=[self._ward_image(c) if h is not None else None for c, h in zip(infos, hb)])
         return alpha, sigma, lobes
 
@@ -1964,7 +1972,9 @@ class ScanRunner:
         snap = self.snapshot()
         if snap.hbsabs:
             figs["HBSAB of each cluster with its fitted lobe, Ward or GGX (§5.1)"] = fig_hbsabs(
-                [h for h in snap.hbsabs if h is not None], snap.hbsab_fits or [], rep / "hbsabs.png")
+                [h for h in snap.hbsabs if h is not None], snap.hbsab_fits or [], rep / "hbsabs.png",
+                lobes=[(snap.lobes or [])[c] if c < len(snap.lobes or []) else "" for c, h in enumerate(snap.hbsabs)
+                       if h is not None])
         if snap.history or len(res.alpha):                  # resumed from checkpoints: the markers alone
             figs["Convergence of alpha and rho_s over frames (lines: the live sweep; markers: the exported "
                  "clusters' values, after any colour split and second sweep)"] = fig_convergence(

@@ -127,8 +127,9 @@ def fig_convergence(history: dict[str, list], path: Path, final: dict | None = N
     return path
 
 
-def fig_hbsabs(hbsabs: list[np.ndarray], fits: list[np.ndarray | None], path: Path) -> Path:
-    """Each cluster's merged HBSAB (mean IR value over half vectors) beside its fitted lobe (Ward or GGX)."""
+def fig_hbsabs(hbsabs: list[np.ndarray], fits: list[np.ndarray | None], path: Path, lobes=None) -> Path:
+    """Each cluster's merged HBSAB (mean IR value over half vectors) beside its fitted lobe (Ward or GGX,
+    named by ``lobes`` where given: each cluster's model)."""
     plt = _plt()
     k = max(1, len(hbsabs))
     fig, axes = plt.subplots(2, k, figsize=(3 * k, 6), squeeze=False)
@@ -138,7 +139,8 @@ def fig_hbsabs(hbsabs: list[np.ndarray], fits: list[np.ndarray | None], path: Pa
             axes[0, c].set_title(f"cluster {c}: HBSAB")
             if c < len(fits) and fits[c] is not None:
                 axes[1, c].imshow(fits[c], cmap="inferno", vmin=np.nanmin(hbsabs[c]), vmax=np.nanmax(hbsabs[c]))
-                axes[1, c].set_title("fitted lobe")
+                name = str(lobes[c]) if lobes is not None and c < len(lobes) else ""
+                axes[1, c].set_title({"ward": "fitted Ward lobe", "ggx": "fitted GGX lobe"}.get(name, "fitted lobe"))
         for r in range(2):
             axes[r, c].set_xticks([]), axes[r, c].set_yticks([])
     fig.tight_layout()

@@ -963,3 +963,31 @@ def test_materials_text_per_cluster():
     txt = materials_text([0.2], None, [[0.032, 0.004, 0.0]], [[np.nan, 0.001, 0.001]], html=True)
     assert txt.startswith("<span style='color:#") and txt.endswith("0: \u03b1 0.200; \u03c1s 0.032, 0.004, 0.000")
     np.testing.assert_allclose(luminance_sigma([[1.0, 1.0, 1.0]]), [np.sqrt(0.2126 ** 2 + 0.7152 ** 2 + 0.0722 ** 2)])
+
+
+def test_hbsab_panel_names_each_clusters_lobe():
+    """The HBSAB panel titles the fitted lobe by the cluster's model (the IR fit's Ward or GGX) and,
+    without a fit image, draws that lobe's own retro slice (offscreen Qt, no display)."""
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    from PySide6.QtWidgets import QApplication
+
+    from appfusion import octahedral as oc
+    from appfusion.brdf import lobe_retro
+    from appfusion.gui.views import HBSABView
+
+    app = QApplication.instance() or QApplication([])
+    ch = oc.hemi_directions(32)[..., 2]
+    hb = [lobe_retro("ggx", 0.15, ch), lobe_retro("ward", 0.3, ch)]
+    view = HBSABView()
+    snap = Snapshot(alpha=np.array([0.15, 0.3], np.float32), lobes=["ggx", "ward"], hbsabs=hb, hbsab_fits=None)
+    view.update_from(snap)
+    assert view.lab_f.textItem.toPlainText().startswith("GGX \u03b1 0.150")
+    x, y = view.curve_f.getData()
+    tt = np.radians(x)
+    ref = lobe_retro("ggx", 0.15, np.cos(tt))
+    np.testing.assert_allclose(y / y.max(), ref / ref.max(), rtol=1e-6)
+    view.set_cluster(1)
+    view.update_from(snap)
+    assert view.lab_f.textItem.toPlainText().startswith("Ward \u03b1 0.300")
+    view.close()
+    app.processEvents()

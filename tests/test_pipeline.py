@@ -280,6 +280,7 @@ def test_a_ggx_highlight_is_scanned_as_ggx_end_to_end(kinect_ggx_sphere, tmp_pat
 
     r, res = _run(kinect_ggx_sphere, tmp_path / "ggx", n_points=5000)
     assert res.model == ["ggx"], (res.model, r.messages)
+    assert r.snapshot().lobes == ["ggx"]                                # what the GUI's HBSAB panel names
     # (rho_s is in the units of the truth's map _run lends the scan, not the capture's white units)
     assert abs(res.alpha[0] / 0.15 - 1) < 0.08 and (res.rho_s[0] > 0).all(), (res.alpha, res.rho_s)
     assert any("ggx alpha" in m or "cluster 0 ggx" in m for m in r.messages), r.messages
@@ -289,7 +290,7 @@ def test_a_ggx_highlight_is_scanned_as_ggx_end_to_end(kinect_ggx_sphere, tmp_pat
     assert geom and geom[0].metadata["extras"]["appfusion"]["cluster_model"] == ["ggx"]
     r2, res2 = _run(kinect_ggx_sphere, tmp_path / "ggx", n_points=5000)  # every stage from its checkpoint
     assert res2.model == ["ggx"] and res2.alpha[0] == res.alpha[0]
-    assert any("rgb: reusing the checkpointed" in m for m in r2.messages)
+    assert any("rgb: reusing the checkpointed" in m for m in r2.messages) and r2.snapshot().lobes == ["ggx"]
     _, ward = _run(kinect_ggx_sphere, tmp_path / "ward", n_points=5000, ir_lobes=("ward",))
     assert ward.model == ["ward"]
     with pytest.raises(AppFusionError, match="ir_lobes"):

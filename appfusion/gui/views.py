@@ -12,7 +12,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from .. import octahedral as oc
-from ..brdf import ward_retro
+from ..brdf import lobe_retro
 from ..frame import REC709_LUMA
 from . import colours as C
 from .paint import brush_select, qmatrix_to_numpy
@@ -109,7 +109,8 @@ class EnvMapView(pg.GraphicsLayoutWidget):
 
 
 class HBSABView(pg.GraphicsLayoutWidget):
-    """The selected cluster's HBSAB (§5.1, Eq. 3) beside its fitted Ward lobe, and a slice through both.
+    """The selected cluster's HBSAB (§5.1, Eq. 3) beside its fitted lobe (Ward or GGX, the snapshot's
+    ``lobes``), and a slice through both.
 
     The slice is the square's middle row, plotted against the signed half-vector angle theta_h
     (degrees), so a broader lobe is a rougher material.
@@ -120,7 +121,7 @@ class HBSABView(pg.GraphicsLayoutWidget):
         self.setBackground((20, 20, 24))
         self.cluster = 0
         self.vb_m, self.img_m, self.lab_m = _image_box(self, "HBSAB", 0, 0)
-        self.vb_f, self.img_f, self.lab_f = _image_box(self, "Ward fit", 0, 1)
+        self.vb_f, self.img_f, self.lab_f = _image_box(self, "lobe fit", 0, 1)
         lut = pg.colormap.get("viridis").getLookupTable(nPts=256)
         self.img_m.setLookupTable(lut)
         self.img_f.setLookupTable(lut)
@@ -130,7 +131,7 @@ class HBSABView(pg.GraphicsLayoutWidget):
         self.plot.showGrid(x=True, y=True, alpha=0.2)
         self.curve_m = self.plot.plot([], [], pen=None, symbol="o", symbolSize=4, symbolBrush=(255, 200, 60),
                                       name="measured")
-        self.curve_f = self.plot.plot([], [], pen=pg.mkPen((90, 200, 255), width=2), name="Ward fit")
+        self.curve_f = self.plot.plot([], [], pen=pg.mkPen((90, 200, 255), width=2), name="lobe fit")
         self.ci.layout.setRowStretchFactor(0, 3)
         self.ci.layout.setRowStretchFactor(1, 2)
         self._fp = None
@@ -149,7 +150,10 @@ class HBSABView(pg.GraphicsLayoutWidget):
         fits = getattr(snap, "hbsab_fits", None)
         f = np.asarray(fits[c], np.float64) if fits and c < len(fits) and fits[c] is not None else None
         alpha = getattr(snap, "alpha", None)
-        fp = (c, fingerprint(h), fingerprint(f), fingerprint(alpha))
+        lobes = getattr(snap, "lobes", None) or []
+        lobe_name = str(lobes[c]) if c < len(lobes) and str(lobes[c]) in ("ward", "ggx") else "ward"
+        name = "GGX" if lobe_name == "ggx" else "Ward"
+        fp = (c, fingerprint(h), fingerprint(f), fingerprint(alpha), lobe_name)
         if fp == self._fp or h is None:
             return
         first = self._fp is None
@@ -182,15 +186,15 @@ class HBSABView(pg.GraphicsLayoutWidget):
         self.plot.setYRange(min(0.0, float(np.nanmin(ref)) if ok.any() else 0.0), max(top, 1e-9) * 1.4, padding=0)
         if f is not None:
             self.img_f.setImage(np.nan_to_num(f), autoLevels=False, levels=(0, hi))
-            self.lab_f.setText(f"Ward{a_txt}")
+            self.lab_f.setText(f"{name}{a_txt}")
             tt = np.linspace(theta.min(), theta.max(), 181)
             # the fitted lobe's own values along the same row, densely: interpolate its slice
             self.curve_f.setData(tt, np.interp(tt, theta, f[mid]))
         elif alpha is not None and c < len(alpha):
-            self.lab_f.setText(f"Ward{a_txt}")
+            self.lab_f.setText(f"{name}{a_txt}")
             self.img_f.clear()
             tt = np.linspace(theta.min(), theta.max(), 181)
-            lobe = ward_retro(float(alpha[c]), np.cos(np.radians(tt)))
+            lobe = lobe_retro(lobe_name, float(alpha[c]), np.cos(np.radians(tt)))
             scale = np.nanmax(row) / max(np.nanmax(lobe), 1e-12) if ok.any() else 1.0
             self.curve_f.setData(tt, lobe * scale)
         if first:
