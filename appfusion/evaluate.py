@@ -269,18 +269,46 @@ def export_error(out_dir: str | os.PathLike, session: str | os.PathLike) -> dict
     if tex is None or tex.ndim != 3:
         raise AppFusionError(f"{out / 'rho_d.exr'}: not a readable RGB image")
     tex = np.ascontiguousarray(tex[..., :3][..., ::-1], np.float32)
-    H, W = tex.shape[:2]
     C = V[F].mean(1)
-    uv = np.asarray(geom.visual.uv, np.float64)[F].mean(1)              # OpenGL: v = 0 is the bottom row
-    mx = (uv[:, 0] * W - 0.5).astype(np.float32)[:, None]
-    my = ((1.0 - uv[:, 1]) * H - 0.5).astype(np.float32)[:, None]
-    ours = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[:, 0]
+    ours = sample_texture(tex, np.asarray(geom.visual.uv, np.float64)[F].mean(1))
     cp, prim, bary = _closest(tV, tF, C)
     trd = np.einsum("pk,pki->pi", bary, obj["rho_d"][tF[prim]])
     keep = cp[:, 2] > 0.01
     res["export_rho_d_median_rel_err"] = (float(np.median(np.abs(ours[keep] - trd[keep]) / np.maximum(trd[keep], 1e-3)))
                                           if keep.any() else float("nan"))
     return res
+
+
+def sample_texture(tex: np.ndarray, uv: np.ndarray, cols: int = 1024) -> np.ndarray:
+    """Bilinear look-ups of a texture at OpenGL texture coordinates (v = 0 the bottom row).
+
+    Parameters
+    ----------
+    tex : (H, W, C) float32
+        The texture.
+    uv : (N, 2) array
+        Texture coordinates in [0, 1]; edges replicate.
+    cols : int
+        The look-ups are laid out ``cols`` to a row: OpenCV's ``remap`` takes maps of fewer than 32767
+        rows, and a mesh of 43k triangles (the vase) has more centroids than that.
+
+    Returns
+    -------
+    (N, C) float32
+    """
+    import cv2
+
+    H, W = tex.shape[:2]
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    n = len(uv)
+    rows = max(1, -(-n // cols))
+    mx = np.zeros(rows * cols, np.float32)
+    my = np.zeros(rows * cols, np.float32)
+    mx[:n] = uv[:, 0] * W - 0.5
+    my[:n] = (1.0 - uv[:, 1]) * H - 0.5
+    out = cv2.remap(tex, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(rows * cols, -1)[:n]
 
 
 def truth_envmap(tdir: Path, name: str, n: int) -> np.ndarray:

@@ -1949,9 +1949,11 @@ class ScanRunner:
         if truth is not None and session is not None:
             from .evaluate import export_error
 
+            import cv2
+
             try:
                 truth.update({k: round(v, 5) for k, v in export_error(out, session).items()})
-            except (AppFusionError, OSError, ValueError) as e:       # the files are written: say so, go on
+            except (AppFusionError, OSError, ValueError, cv2.error) as e:   # the files are written: say so, go on
                 self._note(f"export: the exported files could not be evaluated against the truth ({e})")
         figures = self._report_figures(out, res)
         figures.update(getattr(self, "_extra_figs", {}))

@@ -141,6 +141,33 @@ def test_rho_d_texture_holds_the_points_detail_on_a_coarse_mesh(tmp_path):
         export_error(tmp_path / "ses", tmp_path / "ses")
 
 
+def test_texture_look_ups_for_more_triangles_than_opencv_maps_take():
+    """export_error reads rho_d.exr at every triangle's centroid: a mesh of over 32767 triangles (the
+    vase's 43k) needs more look-ups than OpenCV's remap takes in one column; the look-ups are bilinear,
+    OpenGL v (0 = bottom row), edges replicated."""
+    from appfusion.evaluate import sample_texture
+
+    rng = np.random.default_rng(4)
+    H, W = 48, 64
+    tex = rng.random((H, W, 3)).astype(np.float32)
+    uv = rng.random((40001, 2))
+    got = sample_texture(tex, uv)
+    assert got.shape == (40001, 3)
+    x, y = uv[:, 0] * W - 0.5, (1 - uv[:, 1]) * H - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    # OpenCV's bilinear remap rounds the sub-pixel position to 1/32 of a pixel (INTER_TAB_SIZE)
+    fx, fy = np.round((x - x0) * 32)[:, None] / 32, np.round((y - y0) * 32)[:, None] / 32
+
+    def at(yy, xx):
+        return tex[np.clip(yy, 0, H - 1), np.clip(xx, 0, W - 1)]
+
+    ref = ((1 - fy) * ((1 - fx) * at(y0, x0) + fx * at(y0, x0 + 1))
+           + fy * ((1 - fx) * at(y0 + 1, x0) + fx * at(y0 + 1, x0 + 1)))
+    close = np.abs(got - ref) < 1e-4                          # (a float32 map rounds a few positions the
+    assert close.mean() > 0.999 and np.abs(got - ref).max() < 0.03, close.mean()   # other way: 1/32 px)
+    np.testing.assert_allclose(sample_texture(tex, [[0.0, 1.0]])[0], tex[0, 0], atol=1e-6)
+
+
 def test_convergence_figure_marks_the_exported_values(tmp_path):
     """The report's convergence figure: the live sweep's running estimates as lines, the exported
     clusters (after a colour split, more of them than the running estimates had) as markers."""
