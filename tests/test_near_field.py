@@ -169,6 +169,26 @@ def test_fast_delta_S_matches_the_per_ray_reference_on_the_same_random_numbers()
         np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-6)
 
 
+def _disc_quadrature():
+    """A point 10 cm above the plane, one white circle (r = 2 cm, 10 cm off) on dark paper, the same
+    plane without the circle, and a dense quadrature of the disc (400 x 400 polar cells): positions
+    ``x``, areas ``dA``, distances ``r`` and unit directions ``wi`` from the point."""
+    env = _env()
+    paper = np.array([0.08, 0.06, 0.04])
+    cen, rad = np.array([0.1, 0.0, 0.0]), 0.02
+    nfc = SupportPlaneLight(env, cen[None], np.array([rad]), paper, extent_m=1e4)
+    nf0 = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
+    p = np.array([0.0, 0.0, 0.1])
+    rr = (np.arange(400) + 0.5) / 400 * rad
+    ph = (np.arange(400) + 0.5) / 400 * 2 * np.pi
+    R_, P_ = np.meshgrid(rr, ph, indexing="ij")
+    x = np.stack([cen[0] + R_ * np.cos(P_), cen[1] + R_ * np.sin(P_), np.zeros_like(R_)], -1).reshape(-1, 3)
+    dA = (R_ * (rad / 400) * (2 * np.pi / 400)).reshape(-1)
+    dv = x - p
+    r = np.linalg.norm(dv, axis=1)
+    return env, paper, cen, rad, nfc, nf0, p, x, dA, r, dv / r[:, None]
+
+
 def test_circle_area_samples_keep_dS_unbiased_and_less_noisy():
     """Lobes that reflect a white circle, sharp to broad: dS with the circle minus dS without it is
     the circle's excess over the paper, int_disc (1 - paper) f cos_i cos_c / r^2 dA (dense polar
@@ -177,21 +197,7 @@ def test_circle_area_samples_keep_dS_unbiased_and_less_noisy():
     the earlier 16 lobe samples everywhere (same seed: the sharp lobes draw the same numbers)."""
     from appfusion.brdf import ward
 
-    env = _env()
-    paper = np.array([0.08, 0.06, 0.04])
-    cen, rad = np.array([0.1, 0.0, 0.0]), 0.02
-    nfc = SupportPlaneLight(env, cen[None], np.array([rad]), paper, extent_m=1e4)
-    nf0 = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
-    p = np.array([0.0, 0.0, 0.1])
-    # dense quadrature of the disc: 400 x 400 polar cells
-    rr = (np.arange(400) + 0.5) / 400 * rad
-    ph = (np.arange(400) + 0.5) / 400 * 2 * np.pi
-    R_, P_ = np.meshgrid(rr, ph, indexing="ij")
-    x = np.stack([cen[0] + R_ * np.cos(P_), cen[1] + R_ * np.sin(P_), np.zeros_like(R_)], -1).reshape(-1, 3)
-    dA = (R_ * (rad / 400) * (2 * np.pi / 400)).reshape(-1)
-    dv = x - p
-    r = np.linalg.norm(dv, axis=1)
-    wi = dv / r[:, None]
+    env, paper, cen, rad, nfc, nf0, p, x, dA, r, wi = _disc_quadrature()
     S = 400
     for alpha, nrm, view in ((0.03, [1.0, 0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]),     # lobe inside the disc
                              (0.08, [1.0, 0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]),     # comparable
@@ -316,20 +322,7 @@ def test_circle_area_samples_keep_ggx_dS_unbiased():
     default MIS scheme (4 lobe + 4 disc samples) and for lobe samples alone (circle_samples=0)."""
     from appfusion.brdf import ggx
 
-    env = _env()
-    paper = np.array([0.08, 0.06, 0.04])
-    cen, rad = np.array([0.1, 0.0, 0.0]), 0.02
-    nfc = SupportPlaneLight(env, cen[None], np.array([rad]), paper, extent_m=1e4)
-    nf0 = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
-    p = np.array([0.0, 0.0, 0.1])
-    rr = (np.arange(400) + 0.5) / 400 * rad
-    ph = (np.arange(400) + 0.5) / 400 * 2 * np.pi
-    R_, P_ = np.meshgrid(rr, ph, indexing="ij")
-    x = np.stack([cen[0] + R_ * np.cos(P_), cen[1] + R_ * np.sin(P_), np.zeros_like(R_)], -1).reshape(-1, 3)
-    dA = (R_ * (rad / 400) * (2 * np.pi / 400)).reshape(-1)
-    dv = x - p
-    r = np.linalg.norm(dv, axis=1)
-    wi = dv / r[:, None]
+    env, paper, cen, rad, nfc, nf0, p, x, dA, r, wi = _disc_quadrature()
     S = 400
     for alpha, nrm, view in ((0.03, [1.0, 0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]),
                              (0.12, [1.0, 0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]),
