@@ -59,7 +59,7 @@ linearly in log alpha):
   brought back to texels: one BLAS product per block of nodes does all the sparse dot products.
 * **S table** (:class:`AlphaTable`): ``S sqrt(cos theta_o)`` at every (r node, theta node, beta
   node), RGB, float16 with a per-table scale: ``2 m_r^2 x n_theta x n_beta x 6`` bytes
-  (alpha = 0.06: 13.2 MB; alpha = 0.35: 5.1 MB).
+  (alpha = 0.06: 21.0 MB; alpha = 0.35: 7.5 MB, with the default kernel grids; session 36).
 
 A sample is then 16 reads (4 r nodes, bilinear on the octahedral node grid, x 2 theta x 2 beta). Samples
 with ``n.w_o`` below ``cos(theta_max)`` (default theta_max = 80 degrees) are grazing: S = 0, and
@@ -67,8 +67,8 @@ with ``n.w_o`` below ``cos(theta_max)`` (default theta_max = 80 degrees) are gra
 
 Measured on a 2 x 128^2 office environment (``tests/test_double_product.py``, ``appfusion bench
 --stage rgb``): S within 0.9 % RMS of brute-force quadrature over the map's texels for alpha in
-{0.06, 0.1, 0.2, 0.35} (r grid ~0.35 %, kernel grid ~0.3 %, texel discretisation ~0.15 %), 38 MB
-for those four alphas; the build time is in ``docs/rgb-pass.md``.
+{0.06, 0.1, 0.2, 0.35} (r grid ~0.35 %, kernel grid ~0.3 %, texel discretisation ~0.15 %), 58.5 MB
+for those four alphas (as ``docs/rgb-pass.md`` has it, with the build time); a GGX table adds 14-28 MB.
 
 GGX tables (the model ladder's third rung)
 ------------------------------------------
