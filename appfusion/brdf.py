@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import AppFusionError
+
 #: smallest cosine treated as above the horizon
 COS_EPS = 1e-6
 #: the specular lobes the engine knows (a cluster's model is one of these, or "diffuse")
@@ -185,6 +187,112 @@ def ward_pdf(alpha, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
     tan2 = (1 - ch * ch) / (ch * ch)
     pdf_h = np.exp(-tan2 / np.asarray(alpha) ** 2) / (np.pi * np.asarray(alpha) ** 2 * ch ** 3)
     return pdf_h / (4 * np.maximum(np.abs(np.sum(wo_l * h, -1)), 1e-6))
+
+
+def sample_ggx(alpha, wo_l: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GGX visible-normal sampling (Heitz 2018, "Sampling the GGX distribution of visible normals",
+    JCGT 7(4)) in the local frame (normal +z), for :func:`ggx`.
+
+    The half vector ``h`` is drawn with density ``G1(w_o) (w_o . h)+ D(h) / cos_o`` (the normals the
+    viewer sees), ``w_o`` reflected about it; the solid-angle density of ``w_i`` is then
+    ``G1(w_o) D(h) / (4 cos_o)`` and the estimator weight ``f cos_i / pdf = G1(w_i)`` (<= 1, also at
+    grazing views, unlike the ``D cos(theta_h)`` half-vector sampling of Walter et al. 2007).
+
+    Parameters
+    ----------
+    alpha : float or ndarray
+        GGX roughness (> 0), broadcast against ``u1``.
+    wo_l : (..., 3) ndarray
+        Unit view directions, local frame, above the horizon (a view at or below it is treated as
+        grazing, ``cos_o = 1e-9``).
+    u1, u2 : ndarray
+        Uniforms in [0, 1): radius ``sqrt(u1)`` and azimuth ``2 pi u2`` on the projected hemisphere
+        of visible normals (a stratified pattern of ``(u1, u2)`` stays stratified).
+
+    Returns
+    -------
+    wi : (..., 3) ndarray
+        The sampled lighting directions (may lie below the horizon: their lobe value is 0).
+    cos_oh : (...) ndarray
+        ``w_o . h`` (>= 0 by construction).
+    pdf : (...) ndarray
+        The samples' solid-angle density (1/sr), as :func:`ggx_pdf` gives it.
+    """
+    a = np.asarray(alpha, dtype=np.float64)
+    wo_l = np.asarray(wo_l, dtype=np.float64)
+    u1 = np.asarray(u1, dtype=np.float64)
+    u2 = np.asarray(u2, dtype=np.float64)
+    # the view in the stretched configuration (alpha -> 1), hemisphere of visible normals
+    vz = np.maximum(wo_l[..., 2], 1e-9)
+    hx, hy, hz = a * wo_l[..., 0], a * wo_l[..., 1], vz
+    ln = np.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hy, hz = hx / ln, hy / ln, hz / ln
+    lensq = hx * hx + hy * hy
+    pos = lensq > 0
+    inv = np.where(pos, 1.0 / np.sqrt(np.where(pos, lensq, 1.0)), 0.0)
+    t1x, t1y = np.where(pos, -hy * inv, 1.0), np.where(pos, hx * inv, 0.0)       # T1 = (t1x, t1y, 0)
+    t2x, t2y, t2z = -hz * t1y, hz * t1x, hx * t1y - hy * t1x                      # T2 = V_h x T1
+    r = np.sqrt(u1)
+    phi = 2 * np.pi * u2
+    p1, p2 = r * np.cos(phi), r * np.sin(phi)
+    s = 0.5 * (1.0 + hz)
+    p2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - p1 * p1, 0.0)) + s * p2
+    p3 = np.sqrt(np.maximum(1.0 - p1 * p1 - p2 * p2, 0.0))
+    nx = p1 * t1x + p2 * t2x + p3 * hx
+    ny = p1 * t1y + p2 * t2y + p3 * hy
+    nz = p2 * t2z + p3 * hz
+    # back to the ellipsoid configuration
+    mx, my, mz = a * nx, a * ny, np.maximum(nz, 0.0)
+    mn = np.maximum(np.sqrt(mx * mx + my * my + mz * mz), 1e-300)
+    h = np.stack([mx / mn, my / mn, mz / mn], axis=-1)
+    cos_oh = np.sum(wo_l * h, -1)
+    pdf = ggx_g1(a, vz) * ggx_d(a, h[..., 2]) / (4.0 * vz)
+    return 2 * cos_oh[..., None] * h - wo_l, cos_oh, pdf
+
+
+def ggx_pdf(alpha, wi_l: np.ndarray, wo_l: np.ndarray) -> np.ndarray:
+    """Solid-angle density (1/sr) of :func:`sample_ggx` drawing ``wi_l`` for ``wo_l`` (local frame):
+    ``G1(w_o) D(h) / (4 cos_o)``, 0 where the half vector or the view is at or below the horizon or
+    the half vector faces away from the viewer."""
+    wi_l = np.asarray(wi_l, dtype=np.float64)
+    wo_l = np.asarray(wo_l, dtype=np.float64)
+    h = wi_l + wo_l
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    ch = h[..., 2]
+    co = wo_l[..., 2]
+    ok = (ch > COS_EPS) & (co > COS_EPS) & (np.sum(wo_l * h, -1) > 0)
+    co_ = np.where(ok, co, 1.0)
+    return np.where(ok, ggx_g1(alpha, co_) * ggx_d(alpha, np.where(ok, ch, 1.0)) / (4.0 * co_), 0.0)
+
+
+def ggx_rows(lobe, M: int, who: str = "shade_points") -> np.ndarray | None:
+    """(M,) bool, the points whose lobe is GGX, from ``lobe`` (None, a name or (M,) names; "diffuse"
+    counts as Ward); None where there is none (the all-Ward path). ``who`` names the caller in errors."""
+    if lobe is None:
+        return None
+    names = np.asarray(lobe)
+    if names.ndim > 1 or (names.ndim == 1 and len(names) != M):
+        raise AppFusionError(f"{who}: lobe must be a name or one name per point ({M}), got shape {names.shape}")
+    names = np.broadcast_to(names.astype(str), (M,))
+    bad = sorted(set(np.unique(names).tolist()) - set(LOBES) - {"diffuse"})
+    if bad:
+        raise AppFusionError(f"{who}: unknown specular lobe(s) {bad}; the engine knows {', '.join(LOBES)}")
+    g = names == "ggx"
+    return g if g.any() else None
+
+
+def lobe_rows(a, wi_l: np.ndarray, wo_l: np.ndarray, g: np.ndarray | None) -> np.ndarray:
+    """Specular lobe values (m, K) 1/sr: Ward, GGX on the rows ``g`` (m,) (None: none). ``a`` (m, 1)
+    roughness, ``wi_l`` (m, K, 3) and ``wo_l`` (m, K, 3) local directions."""
+    if g is None or not np.any(g):
+        return ward(a, wi_l, wo_l)
+    g = np.asarray(g, bool)
+    f = np.empty(np.shape(wi_l)[:-1])
+    w = ~g
+    if w.any():
+        f[w] = ward(a[w], wi_l[w], wo_l[w])
+    f[g] = ggx(a[g], wi_l[g], wo_l[g])
+    return f
 
 
 def local_frame(n: np.ndarray) -> np.ndarray:

@@ -117,7 +117,7 @@ import numpy as np
 import pywt
 
 from . import octahedral as octa
-from .brdf import LOBES
+from .brdf import LOBES, ggx_d, ggx_g1
 from .diffuse_term import DiffuseTable, NodeGrid, envmap_check
 from .errors import AppFusionError
 
@@ -379,21 +379,15 @@ def ggx_kernel_slices(alpha: float, square: CapSquare, thetas: np.ndarray, betas
     ``K(w') = D(theta_h) G1(n'.w') G1(cos t) / (4 sqrt(cos t))`` (``appfusion.brdf.ggx``: GGX /
     Trowbridge-Reitz ``D``, separable Smith ``G1``, no Fresnel), with ``n'``, ``w'_o`` and ``h`` as in
     :func:`ward_kernel_slices`, so that again ``f(alpha; w', w'_o) (n'.w')+ = K / sqrt(cos t)``.
-    ``D = alpha^2 / (pi (cos^2 theta_h (alpha^2 - 1) + 1)^2)`` with ``cos^2 theta_h = (n'.h)^2 / |h|^2``;
-    ``G1(c) = 2 / (1 + sqrt(1 + alpha^2 (1 - c^2) / c^2))``. Averaged over each texel's sub-samples.
+    ``D`` and ``G1`` are :func:`appfusion.brdf.ggx_d` and :func:`appfusion.brdf.ggx_g1`, with
+    ``cos theta_h = n'.h / |h|``. Averaged over each texel's sub-samples.
     """
     d = square.sub_directions                                 # (R, R, s, 3)
     wts = square.sub_weights / square.solid_angles[..., None]
     out = np.empty((len(thetas), len(betas), square.res, square.res))
-    a2 = alpha * alpha
-
-    def g1(c):
-        c2 = np.maximum(c * c, 1e-300)
-        return 2.0 / (1.0 + np.sqrt(1.0 + a2 * (1.0 - c2) / c2))
-
     for i, t in enumerate(thetas):
         co = math.cos(t)
-        g_o = float(g1(np.float64(co))) / (4.0 * math.sqrt(co))
+        g_o = float(ggx_g1(alpha, co)) / (4.0 * math.sqrt(co))
         for j, b in enumerate(betas):
             n = np.array([math.sin(t) * math.cos(b), math.sin(t) * math.sin(b), co])
             wo = 2.0 * co * n - np.array([0.0, 0.0, 1.0])
@@ -401,9 +395,8 @@ def ggx_kernel_slices(alpha: float, square: CapSquare, thetas: np.ndarray, betas
             h2 = 2.0 + 2.0 * (d @ wo)                         # |w' + w'_o|^2
             nh = ci + co                                      # n'.(w' + w'_o)
             ok = (ci > 0) & (nh > 0) & (h2 > 1e-12)
-            c2h = np.where(ok, nh * nh / np.where(ok, h2, 1.0), 1.0)
-            D = a2 / (math.pi * (c2h * (a2 - 1.0) + 1.0) ** 2)
-            k = np.where(ok, D * g1(np.where(ok, ci, 1.0)), 0.0) * g_o
+            ch = np.where(ok, nh / np.sqrt(np.where(ok, h2, 1.0)), 1.0)
+            k = np.where(ok, ggx_d(alpha, ch) * ggx_g1(alpha, np.where(ok, ci, 1.0)), 0.0) * g_o
             out[i, j] = (k * wts).sum(axis=-1)
     return out
 
@@ -1103,32 +1096,28 @@ class DoubleProductTables:
         if n.shape != wo.shape:
             raise AppFusionError(f"DoubleProductTables.S: normals {n.shape} and w_o {wo.shape} differ in shape")
         a = np.broadcast_to(np.asarray(alpha, dtype=np.float64), (len(n),))
+        lb = np.asarray(lobe)
+        if lb.ndim not in (0, 1) or (lb.ndim == 1 and lb.shape != (len(n),)):
+            raise AppFusionError(f"DoubleProductTables.S: lobe must be a name or {len(n)} names, got shape {lb.shape}")
+        names = [check_lobe(str(x)) for x in np.unique(lb)]
+        if len(names) == 1:
+            return self._S_of_lobe(n, wo, a, names[0])
         out = np.zeros((len(n), 3), np.float32)
-        if isinstance(lobe, str):
-            groups = [(check_lobe(lobe), None)]
-        else:
-            lb = np.asarray(lobe)
-            if lb.ndim == 0:
-                groups = [(check_lobe(str(lb)), None)]
-            else:
-                if lb.shape != (len(n),):
-                    raise AppFusionError(f"DoubleProductTables.S: lobe must be a name or {len(n)} names, got shape {lb.shape}")
-                names = np.unique(lb)
-                for nm in names:
-                    check_lobe(str(nm))
-                groups = [(str(names[0]), None)] if len(names) == 1 else \
-                    [(str(nm), np.flatnonzero(lb == nm)) for nm in names]
-        for name, rows in groups:
-            ag = a if rows is None else a[rows]
-            uniq = np.unique(ag)
-            for av in uniq:
-                if rows is None:
-                    sel = slice(None) if len(uniq) == 1 else np.flatnonzero(ag == av)
-                else:
-                    sel = rows if len(uniq) == 1 else rows[ag == av]
-                for tab, wt in self._bracket(float(av), name):
-                    v = tab.lookup(n[sel], wo[sel])
-                    out[sel] += v if wt == 1.0 else np.float32(wt) * v
+        for name in names:
+            rows = np.flatnonzero(lb == name)
+            out[rows] = self._S_of_lobe(n[rows], wo[rows], a[rows], name)
+        return out
+
+    def _S_of_lobe(self, n: np.ndarray, wo: np.ndarray, a: np.ndarray, lobe: str) -> np.ndarray:
+        """:meth:`S` of samples that share one lobe, (P, 3) float32: grouped by alpha, each group read
+        from its table or blended between the two of its lobe around it."""
+        out = np.zeros((len(n), 3), np.float32)
+        uniq = np.unique(a)
+        for av in uniq:
+            sel = slice(None) if len(uniq) == 1 else np.flatnonzero(a == av)
+            for tab, wt in self._bracket(float(av), lobe):
+                v = tab.lookup(n[sel], wo[sel])
+                out[sel] += v if wt == 1.0 else np.float32(wt) * v
         return out
 
     def valid(self, normals: np.ndarray, w_o: np.ndarray) -> np.ndarray:

@@ -41,9 +41,9 @@ import math
 import numpy as np
 
 from . import octahedral as oc
-from .brdf import COS_EPS, ggx_d, ggx_g1, ggx_half, local_frame, sample_ward
+from .brdf import COS_EPS, ggx_d, ggx_g1, ggx_half, ggx_rows, lobe_rows, local_frame, sample_ggx, sample_ward
 from .errors import AppFusionError
-from .relight import _ggx_rows, _lobe_rows, sample_ggx
+
 
 __all__ = ["SupportPlaneLight", "paper_radiance_from_env"]
 
@@ -390,7 +390,7 @@ class SupportPlaneLight:
         n = np.asarray(normals, np.float64).reshape(-1, 3)
         v = np.asarray(wo, np.float64).reshape(-1, 3)
         al = np.broadcast_to(np.asarray(alpha, np.float64), (len(p),))
-        gx = _ggx_rows(lobe, len(p), "delta_S")                             # (M,) bool or None
+        gx = ggx_rows(lobe, len(p), "delta_S")                             # (M,) bool or None
         out = np.zeros((len(p), 3))
         if len(p) == 0:
             return out
@@ -615,7 +615,7 @@ class SupportPlaneLight:
     def _lobe_mc_ggx(self, p, n, v, a, k, r1, r2, mis=None) -> np.ndarray:
         """The ``k x k`` stratified estimate of ``dS`` (m, 3), white units, for GGX samples (arguments
         as :meth:`_lobe_mc`, ``a`` the GGX roughness): ray (i, j) draws GGX's visible normals
-        (:func:`appfusion.relight.sample_ggx`) at ``u1 = (i + 0.5 + r1) / k mod 1``, ``u2 = (j + 0.5) / k
+        (:func:`appfusion.brdf.sample_ggx`) at ``u1 = (i + 0.5 + r1) / k mod 1``, ``u2 = (j + 0.5) / k
         + r2 mod 1`` and weighs ``(L_plane - L_env)(w_i)`` by ``f cos_i / pdf = G1(w_i)``; rays with
         ``cos_i > 0`` that go down meet the plane. ``mis`` as in :meth:`_delta_S_mc`, with the lobe's
         density ``G1(w_o) D(h) / (4 cos_o)``. Float64, arrays (m, k^2) (GGX clusters are the few).
@@ -786,7 +786,7 @@ class SupportPlaneLight:
             if gj is not None and gj.any():
                 wi[gj], vh[gj], pdf[gj] = sample_ggx(a[gj], vlk[gj], uu1[gj], uu2[gj])
             ci = wi[..., 2]
-            f = _lobe_rows(a, wi, vlk, gj)
+            f = lobe_rows(a, wi, vlk, gj)
             wgt = np.where((ci > 0) & (vh > 0), f * ci / np.maximum(pdf, 1e-300), 0.0)
             wi_w = np.einsum("mji,mkj->mki", F, wi)
             dL = self.delta_radiance(np.repeat(p[j], len(u1), 0), wi_w.reshape(-1, 3)).reshape(m, len(u1), 3)

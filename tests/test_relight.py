@@ -465,7 +465,7 @@ def test_sample_ggx_draws_visible_normals_like_the_scanner_with_its_own_density(
     replay.synth.materials.lobe_sample draws for the same uniforms; its density is ggx_pdf of what it
     drew and the scanner's lobe_pdf, integrates to one over the sphere, and weighs f cos / pdf = G1(w_i)."""
     from appfusion.brdf import ggx, ggx_g1
-    from appfusion.relight import ggx_pdf, sample_ggx
+    from appfusion.brdf import ggx_pdf, sample_ggx
     from replay.synth import materials as mt
 
     rng = np.random.default_rng(5)
