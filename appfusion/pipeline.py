@@ -70,6 +70,20 @@ PASSES = ("ir-calibration", "environment", "geometry", "rgb", "scan")
 CHECKPOINT_VERSION = 38
 
 
+def _compare_lobes(model, lobes, alpha, specular) -> tuple[np.ndarray, np.ndarray]:
+    """The lobes every point is measured against in the second colour sweep
+    (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`): one per distinct (lobe, alpha) of the
+    specular clusters whose lobe the first sweep's model ladder kept (``model`` not ``"diffuse"``),
+    each with the cluster's current lobe name and alpha. Returns the alphas (K,) and names (K,).
+
+    Until session 37 only Ward lobes were compared: on the ``ggx-two-material`` scene the GGX paint
+    then kept the points the colour split had given it, labels 0.855 against 0.997.
+    """
+    n = min(len(alpha), len(model))
+    pairs = sorted({(str(lobes[c]), float(alpha[c])) for c in range(n) if model[c] != "diffuse" and specular[c]})
+    return np.array([a for _, a in pairs], np.float64), np.array([lb for lb, _ in pairs], dtype="<U8")
+
+
 def _broad_lobe(alpha) -> np.ndarray:
     """(C,) bool: clusters whose fitted IR roughness ran to its upper bound (``ward_fit.ALPHA_MAX``, 1).
 
@@ -1501,7 +1515,7 @@ class ScanRunner:
         (:meth:`appfusion.rgb_pass.RGBPass.reassign_by_model`). Returns the new :class:`RGBResult`
         and labels (caller order). ``reassign=False``: the third sweep of :meth:`_refit_ir_final`,
         with the final clusters kept as they are. ``lobes``: each cluster's lobe name (default Ward);
-        only Ward lobes are measured on the other points.
+        each kept lobe is measured on the other points with its own shape (Ward or GGX).
         """
         from .rgb_pass import RGBPass
 
@@ -1514,12 +1528,12 @@ class ScanRunner:
         # the lobes the first sweep measured (its model ladder kept them) are also measured on every
         # other point, so that each point can go to the model that explains it best
         lobes = np.full(len(alpha), "ward", dtype="<U8") if lobes is None else np.asarray(lobes, dtype="<U8")
-        kept = [c for c in range(min(len(alpha), len(first.model)))
-                if first.model[c] == "ward" and lobes[c] == "ward" and specular[c]]
-        compare = np.unique(np.asarray(alpha, np.float64)[kept]) if self.config.rgb_split and reassign else None
+        compare = compare_lobes = None
+        if self.config.rgb_split and reassign:
+            compare, compare_lobes = _compare_lobes(first.model, lobes, alpha, specular)
         rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables, lobes=lobes,
                       near_field=first.near_field, near_field_samples=int(self.config.near_field_final_samples),
-                      compare_alphas=compare, **self._rgb_kwargs())
+                      compare_alphas=compare, compare_lobes=compare_lobes, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
         self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
         self.timings["rgb-resweep" if reassign else "rgb-third-sweep"] = self.timings.pop("rgb", {})

@@ -598,6 +598,9 @@ class RGBPass:
         Lobes every point is also measured against (:meth:`reassign_by_model`): per point and alpha,
         the running sums of S, S^2, S L and of the diffuse weighting with the S of that alpha (for the
         points whose own lobe is another one; 128 bytes per point and alpha).
+    compare_lobes : sequence of str, optional
+        The lobe of each compare alpha (``"ward"`` or ``"ggx"``; default all Ward): a GGX cluster's
+        lobe is measured on the other points with its own shape, so that points can move to and from it.
     map_blur_var : float
         Blur variance per axis (rad^2) the environment map carries (a captured map's
         ``meta["blur_var_rad2"]``, :func:`appfusion.envmap.map_blur_var`). S is read against the map at
@@ -628,7 +631,7 @@ class RGBPass:
                  d_min: float = 0.01, max_dist: float | None = None, registration: str = "points",
                  depth_tol: float = 0.01, table_kwargs: dict | None = None, near_field=None,
                  diffuse_tau: float | None = 0.25, near_field_samples: int = 4, compare_alphas=None,
-                 rgb_sampling: str = "nearest",
+                 compare_lobes=None, rgb_sampling: str = "nearest",
                  map_blur_var: float = 0.0, clip_correction: bool = True, clip_pool_k: int = 32,
                  se_block_m: float = 0.004):
         P, N = check_oriented_points(positions, normals, "RGBPass")
@@ -684,7 +687,14 @@ class RGBPass:
         if not (np.isfinite(cmp_al).all() and (cmp_al > 0).all()):
             raise AppFusionError(f"RGBPass: compare_alphas must be positive finite roughnesses, got {cmp_al}")
         self.compare_alphas = cmp_al
-        used["ward"] = np.unique(np.r_[used["ward"], cmp_al])         # compare lobes are Ward lobes
+        cmp_lb = np.array(["ward"] * len(cmp_al) if compare_lobes is None else
+                          [str(x) for x in np.asarray(compare_lobes).reshape(-1)], dtype="<U8")
+        if cmp_lb.shape != cmp_al.shape or not np.isin(cmp_lb, LOBES).all():
+            raise AppFusionError(f"RGBPass: compare_lobes must be {len(cmp_al)} names (one per compare alpha) "
+                                 f"among {LOBES}, got {list(cmp_lb)}")
+        self.compare_lobes = cmp_lb
+        for lb in LOBES:
+            used[lb] = np.unique(np.r_[used[lb], cmp_al[cmp_lb == lb]])
         if not (np.isfinite(map_blur_var) and map_blur_var >= 0):
             raise AppFusionError(f"RGBPass: map_blur_var must be a finite variance >= 0 (rad^2), got {map_blur_var}")
         self.map_blur_var = float(map_blur_var)
@@ -1052,12 +1062,12 @@ class RGBPass:
         """Per compare alpha: (need (k,) bool, S (k, 3) float32) for the samples of points whose own
         lobe is another one (or none); S is 0 where not needed."""
         out = []
-        for m, a in enumerate(self.compare_alphas):
-            need = ~(sp & np.isclose(self.point_alpha[p], a, rtol=1e-6, atol=0.0) & (self.point_lobe[p] == "ward"))
+        for m, (a, lb) in enumerate(zip(self.compare_alphas, self.compare_lobes)):
+            need = ~(sp & np.isclose(self.point_alpha[p], a, rtol=1e-6, atol=0.0) & (self.point_lobe[p] == lb))
             Sm = np.zeros((len(p), 3), np.float32)
             i = np.flatnonzero(need)
             if len(i):
-                Sm[i] = self._lobe_S(p[i], nrm[i], wo[i], np.full(len(i), a), seed + 104729 * (m + 1))
+                Sm[i] = self._lobe_S(p[i], nrm[i], wo[i], np.full(len(i), a), seed + 104729 * (m + 1), lobe=str(lb))
             out.append((need, Sm))
         return out
 
@@ -1460,9 +1470,10 @@ class RGBPass:
         its points weak): labels 0.876 -> 0.991, the label's alpha 0.416 -> 0.345 (truth 0.35); the demo
         0.974 -> 0.994 (docs/rgb-pass.md §5d).
 
-        Candidates are the diffuse clusters and those whose lobe is among ``compare_alphas``; a Ward
-        cluster whose lobe is not, but lowers its held-out residual by less than ``weak_lobe`` (a
-        fraction), competes with its diffuse fit; points of other clusters stay. A moved point's S sums become those of its new lobe (the compare
+        Candidates are the diffuse clusters and those whose lobe (alpha and shape) is among
+        ``compare_alphas`` / ``compare_lobes``; a cluster whose lobe is not, but lowers its held-out
+        residual by less than ``weak_lobe`` (a fraction), competes with its diffuse fit; points of other
+        clusters stay. A moved point's S sums become those of its new lobe (the compare
         sums); a point moved into a diffuse cluster keeps its own (rho_s 0 leaves S out of rho_d but
         for the diffuse weighting). On the demo's second sweep: label accuracy 0.947 -> 0.959
         (docs/rgb-pass.md §5e). Returns the number of points moved.
@@ -1483,8 +1494,8 @@ class RGBPass:
             if not (lab == c).any():
                 continue
             rs_c = np.asarray(res.rho_s[c], np.float64)
-            hit = (np.flatnonzero(np.isclose(self.compare_alphas, self.alphas[c], rtol=1e-6, atol=0.0))
-                   if self.lobes[c] == "ward" else np.zeros(0, np.int64))      # compare lobes are Ward's
+            hit = np.flatnonzero(np.isclose(self.compare_alphas, self.alphas[c], rtol=1e-6, atol=0.0)
+                                 & (self.compare_lobes == self.lobes[c]))
             as_diffuse = res.model[c] == "diffuse" or rs_c.max() <= 0
             if not as_diffuse and len(hit) == 0:
                 # its lobe was not measured on the other points. A lobe that explains almost none of
@@ -1501,7 +1512,7 @@ class RGBPass:
                 continue
             m = int(hit[0])
             own = (self._spec_point & np.isclose(self.point_alpha, self.alphas[c], rtol=1e-6, atol=0.0)
-                   & (self.point_lobe == "ward"))[:, None]
+                   & (self.point_lobe == self.lobes[c]))[:, None]
             s = np.where(own, self.sum_s, self.cmp_s[m])
             s2 = np.where(own, self.sum_s2, self.cmp_s2[m])
             sl = np.where(own, self.sum_sl, self.cmp_sl[m])

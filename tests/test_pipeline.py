@@ -270,6 +270,22 @@ def test_final_refit_takes_new_lobes_and_asks_for_a_sweep_when_a_measured_one_mo
     assert "cluster 2 ward 0.200 -> ggx 0.200" in notes[-1]
 
 
+def test_the_second_sweep_compares_every_kept_lobe_with_its_own_shape():
+    """The lobes measured on every point before reassign_by_model: one per distinct (lobe, alpha) of
+    the specular clusters whose lobe the first sweep kept, GGX ones with their own shape (session 37:
+    the ggx-two-material scene's GGX paint was left out, labels 0.855 against 0.997)."""
+    from appfusion.pipeline import _compare_lobes
+
+    alpha = np.array([0.08, 0.35, 0.08, 0.2, 0.08])
+    a, lb = _compare_lobes(["ggx", "ward", "ggx", "diffuse", "ward"], ["ggx", "ward", "ggx", "ward", "ward"],
+                           alpha, [True, True, True, True, True])
+    assert list(zip(lb, a)) == [("ggx", 0.08), ("ward", 0.08), ("ward", 0.35)]
+    a, lb = _compare_lobes(["ggx", "ward"], ["ggx", "ward"], alpha[:2], [True, False])    # no S sums: not compared
+    assert list(lb) == ["ggx"] and list(a) == [0.08]
+    a, lb = _compare_lobes(["diffuse"], ["ward"], alpha[:1], [True])
+    assert a.shape == lb.shape == (0,)
+
+
 def test_a_ggx_highlight_is_scanned_as_ggx_end_to_end(kinect_ggx_sphere, tmp_path):
     """The model ladder's GGX rung through the whole pipeline: the IR fit keeps the GGX lobe, the colour
     pass reads S from GGX tables and keeps it, the result, its checkpoint reload and the .glb name it;

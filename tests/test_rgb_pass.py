@@ -51,15 +51,15 @@ def _stored_terms(sc, rp, stored):
     return p, L, S, D
 
 
-def _model_samples(sc, poses, tables, point_alpha, point_rho_s, rng, noise):
+def _model_samples(sc, poses, tables, point_alpha, point_rho_s, rng, noise, lobe="ward"):
     """Per pose: (visible points, Eq. 5 radiance with relative noise, camera centre), clear of the
-    grazing, dark and saturated cut-offs."""
+    grazing, dark and saturated cut-offs; ``lobe`` the lobe of every point's S."""
     from appfusion.bench.stages.rgb import facing_points
 
     D0 = tables.D(sc.normals).astype(np.float64)
     for T in poses:
         C, wo, vis = facing_points(sc, T)
-        S0 = tables.S(sc.normals[vis], wo[vis], point_alpha[vis]).astype(np.float64)
+        S0 = tables.S(sc.normals[vis], wo[vis], point_alpha[vis], lobe).astype(np.float64)
         L = (D0[vis] * sc.rho_d[vis] + S0 * point_rho_s[vis]) * rng.uniform(1 - noise, 1 + noise, (len(vis), 3))
         ok = (L.max(axis=1) < 0.9) & (L.max(axis=1) > 0.05)
         yield vis[ok], L[ok], C
@@ -447,12 +447,13 @@ def test_dark_saturated_grazing_and_unlit_samples_are_skipped(sphere_run):
     assert rp.result().counts.sum() == 0
 
 
-def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run):
+@pytest.mark.parametrize("lobe", ["ward", "ggx"])
+def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run, lobe):
     """A glossy cap (rho_s 0.4) on a nearly matte sphere (0.01), both with one alpha: the clusters
     given to the pass have the band on both sides of the true boundary swapped. With the glossy lobe
-    measured on every point (compare_alphas), each point goes to the model that fits its
-    neighbourhood: most of the band returns, nothing far from it moves, and the moved points' sums
-    are those of their new lobe."""
+    measured on every point (compare_alphas, compare_lobes: a Ward or a GGX cap), each point goes to
+    the model that fits its neighbourhood: most of the band returns, nothing far from it moves, and
+    the moved points' sums are those of their new lobe."""
     sc, poses, _, rp0, _ = sphere_run
     a0 = float(sc.alphas[0])
     cap = np.asarray(sc.labels) == 1                                 # the glossy cap
@@ -466,9 +467,9 @@ def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run):
     given = np.where(band_out, 0, np.where(band_in, 1, np.where(cap, 0, 1)))   # 0 glossy, 1 matte
     rs_true = np.repeat(np.where(cap, 0.4, 0.01)[:, None], 3, axis=1)
     rp = RGBPass(sc.positions, sc.normals, given, [a0, 0.3], sc.env, tables=rp0.tables, specular=[True, False],
-                 compare_alphas=[a0])
+                 lobes=[lobe, "ward"], compare_alphas=[a0], compare_lobes=[lobe])
     for vis, L, C in _model_samples(sc, poses, rp0.tables, np.full(len(cap), a0), rs_true,
-                                    np.random.default_rng(3), 0.02):
+                                    np.random.default_rng(3), 0.02, lobe=lobe):
         rp.add_samples(vis, L, C)
     res0 = rp.result()
     seen = res0.observed
@@ -481,16 +482,21 @@ def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run):
     print(f"accuracy {before:.3f} -> {after:.3f}, moved {moved}, band fixed "
           f"{(lab == truth)[(band_in | band_out) & seen].mean():.3f}")
     assert moved > 0 and after > before + 0.5 * (1 - before)
-    assert (lab[far] == given[far]).mean() > 0.97
+    # far from the band, the points without evidence (views that never reach a highlight) go by their
+    # pooled residuals' noise: 15 (Ward) and 24 (GGX, whose tail leaves S on the sphere's far side) of ~620
+    assert (lab[far] == given[far]).mean() > (0.97 if lobe == "ward" else 0.95)
     # a matte point moved into the glossy cluster now carries the glossy lobe's S sums
     q = np.flatnonzero((lab == 0) & (given == 1) & seen)
     assert len(q)
     r = rp._rank[q]
     np.testing.assert_allclose(rp.sum_s2[r], rp.cmp_s2[0, r])
     res = rp.result()                                                # less matte mixed in: rho_s nearer 0.4
-    assert res.model[0] == "ward" and abs(res.rho_s[0].mean() - 0.4) < abs(res0.rho_s[0].mean() - 0.4)
+    assert res.model[0] == lobe and abs(res.rho_s[0].mean() - 0.4) < abs(res0.rho_s[0].mean() - 0.4)
     with pytest.raises(AppFusionError, match="compare_alphas"):
         RGBPass(sc.positions, sc.normals, given, [a0, 0.3], sc.env, tables=rp0.tables, compare_alphas=[np.nan])
+    with pytest.raises(AppFusionError, match="compare_lobes"):
+        RGBPass(sc.positions, sc.normals, given, [a0, 0.3], sc.env, tables=rp0.tables, compare_alphas=[a0],
+                compare_lobes=["phong"])
 
 
 def test_weak_model_evidence_is_decided_by_colour():

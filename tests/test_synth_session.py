@@ -133,7 +133,7 @@ def test_allinone_device_streams_everything_every_frame(tmp_path):
 def test_cli_list_and_errors(tmp_path, capsys):
     assert main(["synth", "list"]) == 0
     out = capsys.readouterr().out
-    for name in ("sphere", "vase", "pepper", "two-material", "ggx-sphere"):
+    for name in ("sphere", "vase", "pepper", "two-material", "ggx-sphere", "ggx-two-material", "matte"):
         assert name in out
     assert main(["synth", "teapot", str(tmp_path / "x")]) == 2
     assert "unknown synthetic scene 'teapot'" in capsys.readouterr().err
@@ -181,6 +181,22 @@ def test_demo_session_is_generated_once(tmp_path, monkeypatch):
     p2 = S.demo_session(tmp_path)
     assert p1 == p2 == tmp_path / "synth-demo-two-material" and (p1 / "truth" / "scene.json").exists()
     assert calls == [("two-material", (640, 480), S.DEMO_FRAMES)]
+
+
+def test_ggx_two_material_is_the_capsule_with_a_ggx_paint():
+    """``ggx-two-material``: the two-material capsule (same mesh, albedo and label) whose paint is a
+    GGX lobe, so one object carries lobes of two shapes."""
+    from replay.synth.objects import build_object
+
+    ward, ggx = build_object("two-material", "test"), build_object("ggx-two-material", "test")
+    assert ggx.name == "ggx-two-material"
+    np.testing.assert_array_equal(ward.vertices, ggx.vertices)
+    np.testing.assert_array_equal(ward.rho_d, ggx.rho_d)
+    np.testing.assert_array_equal(ward.material_id, ggx.material_id)
+    label, paint = ggx.materials.to_json()
+    assert label == ward.materials.to_json()[0]
+    assert paint["lobe"] == "ggx" and paint["alpha"] == 0.08 and paint["rho_s"] == [0.3, 0.3, 0.3]
+    assert ggx.vertices[ggx.material_id == 1, 2].min() >= 0.075 - 1e-9          # the paint is the top
 
 
 def test_matte_scene_and_the_false_lobe_metric(tmp_path):

@@ -20,6 +20,8 @@ Objects (``OBJECTS``):
 ``two-material`` a capsule-shaped bottle: glossy blue paint on the top part (z >= 7.5 cm), a matte
                  textured label on the rest; two Ward materials.
 ``ggx-sphere``   the sphere with a GGX lobe (so a Ward-based estimator meets a model it does not have).
+``ggx-two-material`` the two-material capsule with its paint a GGX lobe (alpha 0.08) over the Ward label:
+                 two lobes of different shapes on one object (splits, reassignment and merges across lobes).
 ``matte``        the two-material capsule printed all over on matte paper: one material with no
                  specular lobe in colour or IR (rho_s = 0), so a scan should export it diffuse; a lobe
                  found there is a false one (texture edges, the footprint of a pixel, noise).
@@ -304,7 +306,7 @@ def _pepper(detail: str, seed: int) -> ObjectModel:
                         "|q| - r(q/|q|) by central differences (h = 1e-6 m)"})
 
 
-def _two_material(detail: str, seed: int) -> ObjectModel:
+def _two_material(detail: str, seed: int, paint_lobe: str = "ward") -> ObjectModel:
     r, zc, zb = 0.04, 0.11, 0.075  # radius, cap centre height, material boundary height
     n_phi = 160 if detail == "full" else 56
     n_low, n_up, n_cap = (60, 28, 48) if detail == "full" else (20, 10, 16)
@@ -357,9 +359,11 @@ def _two_material(detail: str, seed: int) -> ObjectModel:
     label[np.abs(n[lo, 2]) > 0.999] = [0.70, 0.64, 0.48]
     rho[lo] = label
     ir = np.where(mat == 1, 0.40, 0.62)
-    mats = MaterialSet([Material("matte-label", (0.03, 0.03, 0.03), 0.35, "ward", ir_rho_s=0.02),
-                        Material("glossy-paint", (0.35, 0.35, 0.35), 0.06, "ward", ir_rho_s=0.12)])
-    return ObjectModel("two-material", v, f, n, rho, ir.astype(np.float64), mat, mats,
+    paint = (Material("glossy-paint", (0.35, 0.35, 0.35), 0.06, "ward", ir_rho_s=0.12) if paint_lobe == "ward" else
+             Material("ggx-paint", (0.30, 0.30, 0.30), 0.08, "ggx", ir_rho_s=0.10))
+    mats = MaterialSet([Material("matte-label", (0.03, 0.03, 0.03), 0.35, "ward", ir_rho_s=0.02), paint])
+    name = "two-material" if paint_lobe == "ward" else f"{paint_lobe}-two-material"
+    return ObjectModel(name, v, f, n, rho, ir.astype(np.float64), mat, mats,
                        {"shape": "capsule", "radius_m": r, "cap_centre_z_m": zc, "material_boundary_z_m": zb})
 
 
@@ -390,6 +394,7 @@ OBJECTS = {
     "pepper": _pepper,
     "two-material": _two_material,
     "ggx-sphere": lambda detail, seed: _sphere(detail, seed, "ggx"),
+    "ggx-two-material": lambda detail, seed: _two_material(detail, seed, "ggx"),
     "matte": _matte,
 }
 
