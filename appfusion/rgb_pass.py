@@ -508,6 +508,15 @@ def _normal_order(normals: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def _lobe_names(names, n: int, what: str) -> np.ndarray:
+    """(n,) lobe names (``"<U8"``) from ``names`` (default all Ward); anything but ``n`` names among
+    :data:`appfusion.brdf.LOBES` is one AppFusionError naming ``what``."""
+    lob = np.array(["ward"] * n if names is None else [str(x) for x in np.asarray(names).reshape(-1)], dtype="<U8")
+    if lob.shape != (n,) or not np.isin(lob, LOBES).all():
+        raise AppFusionError(f"RGBPass: {what} must be {n} name(s) among {', '.join(LOBES)}, got {lob.tolist()}")
+    return lob
+
+
 def _ward_only(lobe) -> bool:
     """True when ``lobe`` (a name or an array of names) names only Ward lobes."""
     return lobe == "ward" if isinstance(lobe, str) else bool((np.asarray(lobe) == "ward").all())
@@ -675,10 +684,7 @@ class RGBPass:
             raise AppFusionError(f"RGBPass: specular must be {len(al)} flags (one per cluster), got {spec.shape}")
         self.specular = spec
         self._spec_point = spec[self.labels]
-        lob = np.array(["ward"] * len(al) if lobes is None else [str(x) for x in np.asarray(lobes).reshape(-1)], dtype="<U8")
-        if lob.shape != al.shape or not np.isin(lob, LOBES).all():
-            raise AppFusionError(f"RGBPass: lobes must be {len(al)} names (one per cluster) among {LOBES}, "
-                                 f"got {list(lob)}")
+        lob = _lobe_names(lobes, len(al), "lobes (one per cluster)")
         self.lobes = lob
         self.point_lobe = lob[self.labels]                      # (P,) the lobe of each point's S sums
         spec_cl = np.unique(self.labels[self._spec_point])
@@ -687,11 +693,7 @@ class RGBPass:
         if not (np.isfinite(cmp_al).all() and (cmp_al > 0).all()):
             raise AppFusionError(f"RGBPass: compare_alphas must be positive finite roughnesses, got {cmp_al}")
         self.compare_alphas = cmp_al
-        cmp_lb = np.array(["ward"] * len(cmp_al) if compare_lobes is None else
-                          [str(x) for x in np.asarray(compare_lobes).reshape(-1)], dtype="<U8")
-        if cmp_lb.shape != cmp_al.shape or not np.isin(cmp_lb, LOBES).all():
-            raise AppFusionError(f"RGBPass: compare_lobes must be {len(cmp_al)} names (one per compare alpha) "
-                                 f"among {LOBES}, got {list(cmp_lb)}")
+        cmp_lb = _lobe_names(compare_lobes, len(cmp_al), "compare_lobes (one per compare alpha)")
         self.compare_lobes = cmp_lb
         for lb in LOBES:
             used[lb] = np.unique(np.r_[used[lb], cmp_al[cmp_lb == lb]])
