@@ -352,7 +352,8 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     from appfusion.errors import EstimationError
     import appfusion.pipeline as P
 
-    for scene, frames, seed in (("two-material", 40, 0), ("matte", 40, 0), ("sphere", 12, 1)):
+    for scene, frames, seed in (("two-material", 40, 0), ("matte", 40, 0), ("sphere", 12, 1),
+                                ("ggx-two-material", 40, 0)):
         session = tmp_path / "sessions" / S.session_name(scene, frames, (320, 240), seed, "test", "test")
         (session / "truth").mkdir(parents=True)
         (session / "truth" / "scene.json").write_text(json.dumps({"ball": {"radius_m": 0.035}}))
@@ -386,6 +387,16 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     assert e["matte"]["fallback"]["ball_radius_m"] == 0.035 and "radius given" in ctx.notes["scan_matte_rho_s"]
     assert got["scan_matte_relit_rel_rmse"] == 0.25 and got["scan_matte_rho_s"] is None   # not in the stand-in's metrics
     assert 0.0 <= got["skip_lighting_saving"] <= 1.0
+    # the GGX two-material scan is the full bench's: null under --quick, and said why
+    assert all(got[k] is None and "full bench only" in ctx.notes[k] for k in S.GGX_METRICS.values())
+    assert "ggx" not in e
+    # ... where it runs, another scene's scan (_scene_scan): its evaluation, models and messages
+    info = {}
+    ev = S._scene_scan(ctx, {**S.GGX_SESSION_FULL, "frames": 40, "size": (320, 240), "detail": "test",
+                             "quality": "test"}, "ggx", S.GGX_METRICS, info)
+    assert ev["label_accuracy"] == 0.9 and info["ggx"]["evaluation"] == ev
+    assert info["ggx"]["session"]["scene"] == "ggx-two-material" and info["ggx"]["fallback"]["ball_radius_m"] == 0.035
+    assert "radius given" in ctx.notes["scan_ggx_label_accuracy"]
 
 
 def test_view_samples_and_truth_free_wavelet_skip():
@@ -440,7 +451,7 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     assert ctx.extra["scan"]["wall_s"] < 150                  # a regression guard (5x), not a timing
     assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
                         "scan_ir_pattern_heldout_cv", "fast_sweep_tracked", *S.SCAN_METRICS.values(),
-                        *S.MATTE_METRICS.values()}
+                        *S.MATTE_METRICS.values(), *S.GGX_METRICS.values()}
     fast = ctx.extra["scan"]["fast_sweep"]
     assert len(fast["frames"]) == 8 and 0 < got["fast_sweep_tracked"] <= 1
     # the matte scene (no lobe) is scanned too: its rho_s over its area, rho_d and relit error

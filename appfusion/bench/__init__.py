@@ -101,6 +101,11 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "scan_matte_rho_s": ("rho_s", None, "lower"),
     "scan_matte_rho_d_median_rel_err": ("fraction", 0.03, "lower"),
     "scan_matte_relit_rel_rmse": ("fraction", 0.05, "lower"),
+    # a GGX paint over a Ward label (ggx-two-material; the full bench only)
+    "scan_ggx_label_accuracy": ("fraction", 0.95, "higher"),
+    "scan_ggx_lobe_accuracy": ("fraction", 1.0, "higher"),
+    "scan_ggx_rho_s_rel_err": ("fraction", 0.05, "lower"),
+    "scan_ggx_relit_rel_rmse": ("fraction", 0.05, "lower"),
     # a fast sweep (30 degrees of orbit a frame): geometry frames tracked within 1 cm / 1 degree
     "fast_sweep_tracked": ("fraction", None, "higher"),
     # "skip what the scene doesn't need": fraction of the run time saved by each skip (no goal; the

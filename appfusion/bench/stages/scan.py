@@ -34,6 +34,11 @@ the synthetic scanner (``replay.synth``), and reports:
     over that material's area (0 when it is exported diffuse: a false lobe is the model ladder's
     error, session 26), its rho_d and its relit error. ``extra["scan"]["matte"]`` holds the evaluation,
     the model per cluster and the scan's messages.
+``scan_ggx_label_accuracy``, ``scan_ggx_lobe_accuracy``, ``scan_ggx_rho_s_rel_err``, ``scan_ggx_relit_rel_rmse``
+    The full bench only (:data:`GGX_SESSION_FULL`; null with ``--quick``): a scan of ``ggx-two-material``,
+    the demo's capsule with a GGX paint (alpha 0.08) over the Ward label, so that both lobe shapes go
+    through the colour split, the reassignment and the refits (session 37: with Ward compare lobes
+    only, labels 0.855). ``extra["scan"]["ggx"]`` as for the matte scene.
 ``fast_sweep_tracked``
     The fraction of a fast sweep's geometry frames tracked within 1 cm and 1 degree of the truth
     (:data:`FAST_SWEEP_SESSION`: the tests' synthetic Kinect sphere, 12 frames a pass, 30 degrees of
@@ -91,6 +96,13 @@ MATTE_SESSION_FULL: dict[str, Any] = {"scene": "matte", "frames": 200, "size": (
 #: evaluation names -> bench metric names of the matte scan
 MATTE_METRICS = {"matte_rho_s": "scan_matte_rho_s", "rho_d_median_rel_err": "scan_matte_rho_d_median_rel_err",
                  "relit_rel_rmse": "scan_matte_relit_rel_rmse"}
+#: two lobe shapes on one object (a GGX paint over the Ward label): the full bench only (a third scan
+#: does not fit --quick's 2 minutes); the session of docs/rgb-pass.md §5j
+GGX_SESSION_FULL: dict[str, Any] = {"scene": "ggx-two-material", "frames": 200, "size": (640, 480),
+                                    "detail": "full", "quality": "full"}
+#: evaluation names -> bench metric names of the GGX two-material scan
+GGX_METRICS = {"label_accuracy": "scan_ggx_label_accuracy", "lobe_accuracy": "scan_ggx_lobe_accuracy",
+               "rho_s_rel_err": "scan_ggx_rho_s_rel_err", "relit_rel_rmse": "scan_ggx_relit_rel_rmse"}
 #: a fast sweep: the tests' synthetic Kinect sphere, 12 frames a pass (30 degrees of orbit a frame);
 #: its geometry pass alone is tracked (metric ``fast_sweep_tracked``, quick and full)
 FAST_SWEEP_SESSION: dict[str, Any] = {"scene": "sphere", "frames": 12, "size": (320, 240), "detail": "test",
@@ -425,6 +437,31 @@ def _scan_with_fallback(session: Path, out: Path, config, info: dict, log) -> di
 
 
 
+def _scene_scan(ctx, q: dict[str, Any], name: str, metrics: dict[str, str], info: dict) -> dict[str, Any]:
+    """Scan another scene's session ``q`` (rendered once, cached) into ``WORKDIR/scan-NAME``, with the
+    --quick scan's points and textures under ``--quick``; its evaluation, models per cluster and
+    messages go to ``info[name]``. Returns the evaluation (``{}`` without truth)."""
+    from appfusion.pipeline import ScanConfig
+    from appfusion.result import ScanResult
+
+    session, render_s = cached_session(ctx.workdir / "sessions", q["scene"], q["frames"], q["size"], ctx.seed,
+                                       q["detail"], q["quality"], cache_dir=ctx.workdir / "synth-cache", log=ctx.log)
+    config = ScanConfig(n_points=QUICK_POINTS, texture_size=QUICK_TEXTURE) if ctx.quick else ScanConfig()
+    sinfo: dict[str, Any] = {"session": {**q, "size": list(q["size"]), "seed": ctx.seed, "path": str(session),
+                                         "render_s": round(render_s, 2)}}
+    out = ctx.workdir / f"scan-{name}"
+    scan = _scan_with_fallback(session, out, config, sinfo, ctx.log)
+    ev = scan["metrics"]
+    models = list(ScanResult.load(out / "result.npz").model) if (out / "result.npz").exists() else None
+    sinfo.update({"wall_s": round(scan["wall_s"], 2), "evaluation": ev, "model": models,
+                  "messages": scan["messages"][-30:]})
+    info[name] = sinfo
+    if "fallback" in sinfo:
+        for k in metrics.values():
+            ctx.note(k, f"mirror-ball radius given: the sphere fit failed (extra.scan.{name}.fallback)")
+    return ev
+
+
 def run(ctx) -> dict[str, float | None]:
     """Bench entry point (see the module docstring)."""
     from appfusion.pipeline import ScanConfig
@@ -511,25 +548,15 @@ def run(ctx) -> dict[str, float | None]:
     ctx.extra["scan"] = info
 
     # -- the matte scene: a material without a lobe, which the scan should export diffuse ----------
-    q = MATTE_SESSION if ctx.quick else MATTE_SESSION_FULL
-    msession, mrender_s = cached_session(ctx.workdir / "sessions", q["scene"], q["frames"], q["size"], ctx.seed,
-                                         q["detail"], q["quality"], cache_dir=synth_cache, log=log)
-    mconfig = ScanConfig(n_points=QUICK_POINTS, texture_size=QUICK_TEXTURE) if ctx.quick else ScanConfig()
-    minfo: dict[str, Any] = {"session": {**q, "size": list(q["size"]), "seed": ctx.seed, "path": str(msession),
-                                         "render_s": round(mrender_s, 2)}}
-    matte = _scan_with_fallback(msession, ctx.workdir / "scan-matte", mconfig, minfo, log)
-    mm = matte["metrics"]
-    models = None
-    if (ctx.workdir / "scan-matte" / "result.npz").exists():
-        from appfusion.result import ScanResult
-
-        models = list(ScanResult.load(ctx.workdir / "scan-matte" / "result.npz").model)
-    minfo.update({"wall_s": round(matte["wall_s"], 2), "evaluation": mm, "model": models,
-                  "messages": matte["messages"][-30:]})
-    info["matte"] = minfo
-    if "fallback" in minfo:
-        for k in MATTE_METRICS.values():
-            ctx.note(k, "mirror-ball radius given: the sphere fit failed (extra.scan.matte.fallback)")
+    mm = _scene_scan(ctx, MATTE_SESSION if ctx.quick else MATTE_SESSION_FULL, "matte", MATTE_METRICS, info)
+    # -- the GGX paint over the Ward label: both lobes' clusters through splits and reassignment --
+    gm: dict[str, Any] = {}
+    if ctx.quick:
+        for k in GGX_METRICS.values():
+            ctx.note(k, "full bench only: a scan of ggx-two-material (200 frames at 640 x 480) does not fit "
+                        "--quick's 2 minutes")
+    else:
+        gm = _scene_scan(ctx, GGX_SESSION_FULL, "ggx", GGX_METRICS, info)
 
     # -- a fast sweep: 30 degrees of orbit a frame, the geometry pass alone ------------------------
     q = FAST_SWEEP_SESSION
@@ -547,6 +574,8 @@ def run(ctx) -> dict[str, float | None]:
         got[name] = json_float(m.get(k))
     for k, name in MATTE_METRICS.items():
         got[name] = json_float(mm.get(k))
+    for k, name in GGX_METRICS.items():
+        got[name] = json_float(gm.get(k))
     # the IR calibration's emitter-pattern map (calibration.ir_pattern): the spread of held-out sheet
     # pixels' intensity over the map's prediction (without the map: the pattern's own, ~0.45)
     prof_path = out / "state" / "ir_profile.json"
