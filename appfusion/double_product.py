@@ -101,6 +101,11 @@ Measured (``tests/test_double_product.py``, 2 x 128^2 office map, 300 samples, e
 lazy tables compute only the nodes the samples need. Ward 0.15 + GGX 0.15 (one cluster on both rungs):
 34 MB with D, 9 s eager build. The four Ward alphas above with GGX 0.15 take 80 MB (the Ward four alone
 58 MB with these defaults), over the 64 MB budget.
+
+A scan holds only the tables its last colour sweep reads (:meth:`DoubleProductTables.keep_only`, session
+37): each IR refit adds tables for new alphas, and the `ggx-two-material` scan ended with five (90.6 MB:
+the first sweep's Ward 0.092, the split's GGX 0.075 and Ward 0.343, the final GGX 0.078 and Ward 0.329),
+now with the last two (34.8 MB).
 """
 
 from __future__ import annotations
@@ -1124,6 +1129,21 @@ class DoubleProductTables:
         """True where a sample is within the tabulated view angles (``n.w_o >= cos(theta_max)``)."""
         co = np.einsum("...i,...i->...", np.asarray(normals, float), np.asarray(w_o, float))
         return co >= math.cos(self.theta_max)
+
+    def keep_only(self, keys) -> float:
+        """Release every S table whose ``(lobe, alpha)`` is not among ``keys``; returns the MB released.
+
+        A scan's colour sweeps read the tables of the lobes fitted at the time, and each refit of the
+        IR lobes adds tables for the new alphas (the first sweep's, the split's, the final clusters');
+        the earlier ones are not read again. On the ``ggx-two-material`` scan five tables (90.6 MB)
+        were held at the end, two of them read by the last sweep (34.7 MB; session 37).
+        """
+        keep = {(check_lobe(lb), float(a)) for lb, a in keys}
+        drop = [k for k in self.all_tables if k not in keep]
+        freed = sum(self.all_tables[k].nbytes for k in drop)
+        for k in drop:
+            del self.all_tables[k]
+        return freed / 2**20
 
     @property
     def nbytes(self) -> int:

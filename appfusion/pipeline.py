@@ -1540,6 +1540,10 @@ class ScanRunner:
         if t_first is not None:
             self.timings["rgb"] = t_first
         self.rgb = rgb
+        # the tables of lobes no pass reads any more (the first sweep's, an earlier refit's) go
+        freed = rgb.tables.keep_only(rgb.table_keys)
+        if freed > 0:
+            self._note(f"rgb: S tables of earlier lobes released ({freed:.1f} MB; {rgb.tables.nbytes / 2**20:.1f} MB kept)")
         if compare is not None and len(compare):
             moved = rgb.reassign_by_model(colour_regions_on=self.config.rgb_colour_regions)
             self._note(f"rgb: {moved} points moved to the cluster whose colour model fits their neighbourhood best")

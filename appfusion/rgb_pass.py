@@ -701,6 +701,8 @@ class RGBPass:
             raise AppFusionError(f"RGBPass: map_blur_var must be a finite variance >= 0 (rad^2), got {map_blur_var}")
         self.map_blur_var = float(map_blur_var)
         used = {lb: np.unique(self._map_alpha(a)) for lb, a in used.items()}
+        #: the (lobe, alpha) of every S table this pass reads (DoubleProductTables.keep_only)
+        self.table_keys = {(lb, float(a)) for lb, a_lb in used.items() for a in a_lb}
         if tables is None:
             tables = DoubleProductTables(env, used["ward"], **(table_kwargs or {}))
         else:

@@ -421,6 +421,16 @@ def test_lobe_api_keys_tables_by_lobe_and_alpha(small_tables):
     assert set(rep["alphas"]) == {"0.12"} and set(rep["lobes"]["ggx"]) == {"0.12", "0.3"}
     assert rep["nodes_total"] == sum(t.grid.size for t in T.all_tables.values())
     assert T.table(0.3, "ggx").stats["stretch"] >= 1 and T.table(0.12, "ggx").stats["res"] == 64
+    # the tables no pass reads any more are released (a scan's earlier lobes); the kept ones read as before
+    before, mb = T.S(n[g], wo[g], 0.3, "ggx"), T.table(0.12, "ggx").nbytes / 2**20 + T.table(0.12).nbytes / 2**20
+    assert T.keep_only({("ggx", 0.3)}) == pytest.approx(mb)
+    assert set(T.all_tables) == {("ggx", 0.3)} and T.alphas == []
+    np.testing.assert_array_equal(T.S(n[g], wo[g], 0.3, "ggx"), before)
+    with pytest.raises(AppFusionError, match="no S table"):
+        T.S(n, wo, 0.12)
+    assert T.keep_only([("ggx", 0.3)]) == 0.0
+    with pytest.raises(AppFusionError, match="unknown specular lobe"):
+        T.keep_only({("phong", 0.3)})
 
 
 @pytest.mark.slow

@@ -468,6 +468,7 @@ def test_reassign_by_model_moves_a_misassigned_band_back(sphere_run, lobe):
     rs_true = np.repeat(np.where(cap, 0.4, 0.01)[:, None], 3, axis=1)
     rp = RGBPass(sc.positions, sc.normals, given, [a0, 0.3], sc.env, tables=rp0.tables, specular=[True, False],
                  lobes=[lobe, "ward"], compare_alphas=[a0], compare_lobes=[lobe])
+    assert rp.table_keys == {(lobe, a0)}                              # the matte cluster reads no S table
     for vis, L, C in _model_samples(sc, poses, rp0.tables, np.full(len(cap), a0), rs_true,
                                     np.random.default_rng(3), 0.02, lobe=lobe):
         rp.add_samples(vis, L, C)
@@ -793,6 +794,7 @@ def test_a_ggx_cluster_reads_its_own_tables_and_the_ladder_names_its_lobe(sphere
     rp = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables, lobes=lobes)
     rpw = RGBPass(sc.positions, sc.normals, sc.labels, sc.alphas, sc.env, tables=rp0.tables)
     assert list(rp.lobes) == ["ggx", "ward"] and rp0.tables.lobe_alphas("ggx") == [float(sc.alphas[0])]
+    assert rp.table_keys == {("ggx", float(sc.alphas[0])), ("ward", float(sc.alphas[1]))}
     D0 = rp.tables.D(sc.normals).astype(np.float64)
     rng = np.random.default_rng(3)
     for T in poses:
