@@ -1990,11 +1990,9 @@ class ScanRunner:
         rep.mkdir(parents=True, exist_ok=True)
         figs: dict[str, Path] = {}
         snap = self.snapshot()
-        if snap.hbsabs:
+        if snap.hbsabs and any(h is not None for h in snap.hbsabs):
             figs["HBSAB of each cluster with its fitted lobe, Ward or GGX (§5.1)"] = fig_hbsabs(
-                [h for h in snap.hbsabs if h is not None], snap.hbsab_fits or [], rep / "hbsabs.png",
-                lobes=[(snap.lobes or [])[c] if c < len(snap.lobes or []) else "" for c, h in enumerate(snap.hbsabs)
-                       if h is not None])
+                list(snap.hbsabs), snap.hbsab_fits or [], rep / "hbsabs.png", lobes=snap.lobes)
         if snap.history or len(res.alpha):                  # resumed from checkpoints: the markers alone
             figs["Convergence of alpha and rho_s over frames (lines: the live sweep; markers: the exported "
                  "clusters' values, after any colour split and second sweep)"] = fig_convergence(

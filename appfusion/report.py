@@ -127,14 +127,17 @@ def fig_convergence(history: dict[str, list], path: Path, final: dict | None = N
     return path
 
 
-def fig_hbsabs(hbsabs: list[np.ndarray], fits: list[np.ndarray | None], path: Path, lobes=None) -> Path:
+def fig_hbsabs(hbsabs: list[np.ndarray | None], fits: list[np.ndarray | None], path: Path, lobes=None) -> Path:
     """Each cluster's merged HBSAB (mean IR value over half vectors) beside its fitted lobe (Ward or GGX,
-    named by ``lobes`` where given: each cluster's model)."""
+    named by ``lobes`` where given: each cluster's model). Lists are per cluster; a cluster without an
+    HBSAB (None) keeps its column, titled so, and the others keep their numbers and fits."""
     plt = _plt()
     k = max(1, len(hbsabs))
     fig, axes = plt.subplots(2, k, figsize=(3 * k, 6), squeeze=False)
     for c in range(k):
-        if c < len(hbsabs):
+        if c < len(hbsabs) and hbsabs[c] is None:
+            axes[0, c].set_title(f"cluster {c}: no HBSAB")
+        elif c < len(hbsabs):
             axes[0, c].imshow(hbsabs[c], cmap="inferno")
             axes[0, c].set_title(f"cluster {c}: HBSAB")
             if c < len(fits) and fits[c] is not None:

@@ -189,6 +189,24 @@ def test_convergence_figure_marks_the_exported_values(tmp_path):
     fig_convergence({}, tmp_path / "e.png", final=final)             # no history: markers only
 
 
+def test_hbsab_figure_keeps_each_clusters_column(tmp_path):
+    """A cluster without an HBSAB (None) keeps its column in the report's figure; the next cluster's
+    HBSAB and fitted lobe stay in theirs (they had moved one column left, beside the first's fit)."""
+    from PIL import Image
+
+    from appfusion.report import fig_hbsabs
+
+    yy, xx = np.mgrid[-1:1:32j, -1:1:32j]
+    h = np.exp(-(xx ** 2 + yy ** 2) / 0.1)
+    p = fig_hbsabs([None, h], [None, 0.9 * h], tmp_path / "h.png", lobes=["diffuse", "ggx"])
+    a = np.asarray(Image.open(p).convert("RGB")).astype(int)
+    H, W = a.shape[:2]
+    dark = (a.sum(-1) < 200)                                          # inferno's dark end: an image was drawn
+    left, right = dark[:, : W // 2], dark[:, W // 2:]
+    assert right[: H // 2].mean() > 0.2 and right[H // 2:].mean() > 0.2    # cluster 1: HBSAB and fit
+    assert left.mean() < 0.02                                         # cluster 0: nothing drawn
+
+
 def test_info_describes_a_scan_output_folder(tmp_path, capsys):
     """`appfusion info OUT` on a scan's output: the materials with their standard errors (none where
     unknown), the mesh, the files and the errors against truth; --json alike; a broken result.npz is
