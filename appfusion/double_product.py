@@ -1135,8 +1135,8 @@ class DoubleProductTables:
 
         A scan's colour sweeps read the tables of the lobes fitted at the time, and each refit of the
         IR lobes adds tables for the new alphas (the first sweep's, the split's, the final clusters');
-        the earlier ones are not read again. On the ``ggx-two-material`` scan five tables (90.6 MB)
-        were held at the end, two of them read by the last sweep (34.7 MB; session 37).
+        the earlier ones are not read again. The ``ggx-two-material`` scan ended holding five tables
+        (90.6 MB with D), of which its last sweep read two (34.8 MB with D; session 37).
         """
         keep = {(check_lobe(lb), float(a)) for lb, a in keys}
         drop = [k for k in self.all_tables if k not in keep]
