@@ -205,6 +205,14 @@ def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_p
         assert r.rgb.alphas[0] == alphas[0] * 0.5
         assert not np.allclose(r.rgb.sum_s2, sharp.sum_s2)
         assert np.isfinite(res2.rho_s).all() and np.isfinite(res2.rho_d).all()
+        assert set(r.rgb.tables.all_tables) == r.rgb.table_keys      # the earlier alpha's table released
+        assert any("S tables of earlier lobes released" in m for m in r.messages)
+        # a GGX lobe for the cluster (the ladder's third rung): measured on every point with its own shape
+        kept = r.rgb.result().model[0] != "diffuse"
+        r._rgb_resweep(labels, alphas, np.ones(len(alphas), bool), a, b, "rgb", lobes=np.array(["ggx"]))
+        assert list(r.rgb.lobes) == ["ggx"] and {lb for lb, _ in r.rgb.table_keys} == {"ggx"}
+        assert list(r.rgb.compare_lobes) == (["ggx"] if kept else [])
+        assert set(r.rgb.tables.all_tables) == r.rgb.table_keys
         # a split: half the points in a new cluster that carries the parent's alpha
         half = np.where(np.arange(len(labels)) % 2 == 0, 0, 1).astype(np.int32)
         r.rgb.specular = np.array([True, False])
