@@ -559,6 +559,9 @@ class ScanRunner:
         lobes = (c.ir_lobes,) if isinstance(c.ir_lobes, str) else tuple(c.ir_lobes or ())
         if not lobes or any(str(x) not in LOBES for x in lobes):
             raise AppFusionError(f"scan config: ir_lobes must name one or more lobes among {LOBES}, got {c.ir_lobes!r}")
+        if not (isinstance(c.texture_size, (int, np.integer)) and 16 <= int(c.texture_size) <= 16384):
+            raise AppFusionError(f"scan config: texture_size (side of the exported texture maps, texels) must be an "
+                                 f"integer in [16, 16384], got {c.texture_size!r}")
         if not (isinstance(c.n_points, (int, np.integer)) and int(c.n_points) >= 1):
             raise AppFusionError(f"scan config: n_points (points sampled on the surface) must be a positive "
                                  f"integer, got {c.n_points!r}")

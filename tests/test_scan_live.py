@@ -340,6 +340,9 @@ def test_cli_argument_errors(capsys):
     (["--stride", "0"], "frame_stride must be a positive integer"),
     (["--ball-radius", "-0.03"], "ball_radius_m must be None (fitted) or a positive radius"),
     (["--ball-radius", "nan"], "ball_radius_m must be None (fitted) or a positive radius"),
+    (["--texture-size", "0"], "texture_size (side of the exported texture maps, texels) must be an integer in [16, 16384]"),
+    (["--lobes", "ward,phong"], "ir_lobes must name one or more lobes among"),
+    (["--lobes", ","], "ir_lobes must name one or more lobes among"),
     (["--marker-side", "0.3"], "--marker-side: for live scans (--device) only"),
     (["--pass-frames", "geometry=10", "--dark-frames", "3"], "--pass-frames, --dark-frames: for live scans"),
     (["--device", "openni2:Dummy", "--marker-side", "-1"], "--marker-side must be a positive length"),
@@ -357,6 +360,20 @@ def test_cli_scan_arguments_out_of_range_are_refused_before_any_frame(args, msg,
     err = capsys.readouterr().err
     assert msg in err and err.count("\n") == 1, err
     assert not out.exists()
+
+
+def test_cli_scan_lobes_and_texture_size_reach_the_scan_config(redwood_dir, tmp_path, monkeypatch, capsys):
+    """``--lobes ward`` (the paper's model only) and ``--texture-size`` set ScanConfig.ir_lobes and
+    texture_size; without them the defaults stand (Ward and GGX, 1024)."""
+    import appfusion.pipeline as P
+    from appfusion.cli import main
+
+    seen = []
+    monkeypatch.setattr(P, "run_scan", lambda session, out, config=None, **kw: seen.append(config) or "ok")
+    assert main(["scan", str(redwood_dir), "--out", str(tmp_path / "a"), "--lobes", " ward ", "--texture-size", "256"]) == 0
+    assert main(["scan", str(redwood_dir), "--out", str(tmp_path / "b")]) == 0
+    assert seen[0].ir_lobes == ("ward",) and seen[0].texture_size == 256
+    assert tuple(seen[1].ir_lobes) == ("ward", "ggx") and seen[1].texture_size == 1024
 
 
 class SyntheticKinectStub(Source):

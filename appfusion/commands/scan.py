@@ -82,6 +82,11 @@ def register(sub) -> None:
                         "objects with sharp rims (synthetic pepper: relit error 0.0755 -> 0.064); a first "
                         "round whose moves mostly reach the largest tilt is undone, as on smooth capsules "
                         "(docs/rgb-pass.md §5f)")
+    p.add_argument("--lobes", default=None, metavar="LIST",
+                   help="specular lobes the IR fits may choose between per cluster, comma-separated: ward,ggx "
+                        "(default) or ward (the paper's model only; docs/rgb-pass.md §5j)")
+    p.add_argument("--texture-size", type=int, default=None, metavar="N",
+                   help="side of the exported texture maps in texels (default 1024)")
     p.add_argument("--skip-bad", action="store_true", help="skip damaged frames instead of stopping")
     p.add_argument("--fresh", action="store_true", help="ignore checkpoints of an earlier run in --out")
     p.add_argument("--no-progress", action="store_true")
@@ -118,6 +123,10 @@ def run(args) -> int:
         cfg.n_points = args.points                          # checked by ScanRunner (>= 1)
     if args.normal_refine is not None:
         cfg.normal_refine_rounds = args.normal_refine       # checked by ScanRunner (>= 0)
+    if args.lobes is not None:
+        cfg.ir_lobes = tuple(x.strip() for x in args.lobes.split(",") if x.strip())   # checked by ScanRunner
+    if args.texture_size is not None:
+        cfg.texture_size = args.texture_size                # checked by ScanRunner ([16, 16384])
     live_only = [f for f, v in (("--pass-frames", args.pass_frames), ("--marker-radius", args.marker_radius),
                                 ("--key-radius", args.key_radius), ("--marker-side", args.marker_side),
                                 ("--dark-frames", args.dark_frames))
