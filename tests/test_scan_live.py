@@ -362,16 +362,18 @@ def test_cli_scan_arguments_out_of_range_are_refused_before_any_frame(args, msg,
     assert not out.exists()
 
 
-def test_cli_scan_lobes_and_texture_size_reach_the_scan_config(redwood_dir, tmp_path, monkeypatch, capsys):
+def test_cli_scan_lobes_and_texture_size_reach_the_scan_config(tmp_path, monkeypatch, capsys):
     """``--lobes ward`` (the paper's model only) and ``--texture-size`` set ScanConfig.ir_lobes and
-    texture_size; without them the defaults stand (Ward and GGX, 1024)."""
+    texture_size; without them the defaults stand (Ward and GGX, 1024). (run_scan is a stand-in: no
+    recording is opened.)"""
     import appfusion.pipeline as P
     from appfusion.cli import main
 
     seen = []
     monkeypatch.setattr(P, "run_scan", lambda session, out, config=None, **kw: seen.append(config) or "ok")
-    assert main(["scan", str(redwood_dir), "--out", str(tmp_path / "a"), "--lobes", " ward ", "--texture-size", "256"]) == 0
-    assert main(["scan", str(redwood_dir), "--out", str(tmp_path / "b")]) == 0
+    session = str(tmp_path / "session")
+    assert main(["scan", session, "--out", str(tmp_path / "a"), "--lobes", " ward ", "--texture-size", "256"]) == 0
+    assert main(["scan", session, "--out", str(tmp_path / "b")]) == 0
     assert seen[0].ir_lobes == ("ward",) and seen[0].texture_size == 256
     assert tuple(seen[1].ir_lobes) == ("ward", "ggx") and seen[1].texture_size == 1024
 
