@@ -47,23 +47,32 @@ def test_delta_D_of_a_downward_normal_is_the_disc_form_factor():
     np.testing.assert_allclose(nf.delta_D(p, n)[0], want, rtol=0.02, atol=2e-4)
 
 
+def _paper_hemisphere():
+    """The map, the paper's radiance, the map with that paper as its lower hemisphere, and the plane
+    model that should equal it (an extent far beyond every hit, circles far off)."""
+    env = _env()
+    paper = np.array([0.08, 0.06, 0.04])
+    return env, paper, _env(lower=paper), SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
+
+
+def _side_views(rng: np.random.Generator, m: int):
+    """Up to m side-facing normals (their lobes reach the plane) seen by cameras above, n.w_o > 0.3."""
+    n = rng.normal(size=(m, 3))
+    n[:, 2] = np.abs(n[:, 2]) * 0.3
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    wo = n + rng.normal(size=(m, 3)) * 0.3
+    wo[:, 2] = np.abs(wo[:, 2]) + 0.3
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    keep = np.sum(n * wo, 1) > 0.3
+    return n[keep], wo[keep]
+
+
 def test_delta_S_matches_brute_force_with_the_plane_as_lower_hemisphere():
     """With an extent far beyond every hit, the plane model is a lower hemisphere of uniform paper:
     dS = S(env with paper below) - S(env), by brute-force quadrature over all texels."""
-    env = _env()
-    paper = np.array([0.08, 0.06, 0.04])
-    env_p = _env(lower=paper)
-    nf = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
+    env, paper, env_p, nf = _paper_hemisphere()
     rng = np.random.default_rng(0)
-    m = 40
-    n = rng.normal(size=(m, 3))
-    n[:, 2] = np.abs(n[:, 2]) * 0.3                   # side-facing normals: lobes reach the plane
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    wo = n + rng.normal(size=(m, 3)) * 0.3
-    wo[:, 2] = np.abs(wo[:, 2]) + 0.3                  # cameras above
-    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    keep = np.sum(n * wo, 1) > 0.3
-    n, wo = n[keep], wo[keep]
+    n, wo = _side_views(rng, 40)
     p = np.tile([0.0, 0.0, 0.08], (len(n), 1))
     for alpha in (0.08, 0.3):
         want = brute_force_S(env_p, n, alpha, wo) - brute_force_S(env, n, alpha, wo)
@@ -148,11 +157,9 @@ def _lobes_near_circles(m, seed):
     return p, n, wo, rng.choice([0.03, 0.08, 0.25], m)
 
 
-def test_fast_delta_S_matches_the_per_ray_reference_on_the_same_random_numbers():
-    """The vectorised lobe estimator (closed-form weight, float32 rays, circle cells, four-texel map
-    look-up) against the original per-ray implementation (sample_ward, ward, delta_radiance on every
-    ray), on the same stratified patterns: circles near the lobes, the object's shadow on the plane,
-    a map that varies below the horizon."""
+def _textured_plane() -> SupportPlaneLight:
+    """The plane of the fast-against-reference tests: circles near the lobes (one far off), the
+    object's shadow on the plane, and a map that varies below the horizon."""
     env = _env()
     d = oc.sphere_directions(N)
     env = env * (1.0 + 0.5 * np.sin(7 * d[..., :1]) * np.cos(5 * d[..., 1:2])).astype(np.float32)
@@ -161,6 +168,15 @@ def test_fast_delta_S_matches_the_per_ray_reference_on_the_same_random_numbers()
     nf = SupportPlaneLight(env, centres, radii, [0.05, 0.06, 0.04], extent_m=0.35)
     nodes = np.arange(-0.35, 0.351, 0.01)
     nf.shadow = (nodes, 0.5 + 0.5 * np.cos(nodes[:, None] * 20) * np.sin(nodes[None, :] * 13))
+    return nf
+
+
+def test_fast_delta_S_matches_the_per_ray_reference_on_the_same_random_numbers():
+    """The vectorised lobe estimator (closed-form weight, float32 rays, circle cells, four-texel map
+    look-up) against the original per-ray implementation (sample_ward, ward, delta_radiance on every
+    ray), on the same stratified patterns: circles near the lobes, the object's shadow on the plane,
+    a map that varies below the horizon."""
+    nf = _textured_plane()
     p, n, wo, al = _lobes_near_circles(3000, 1)
     for ns in (4, 16):
         ref = nf.delta_S(p, n, wo, al, n_samples=ns, seed=3, reference=True)
@@ -189,6 +205,16 @@ def _disc_quadrature():
     return env, paper, cen, rad, nfc, nf0, p, x, dA, r, dv / r[:, None]
 
 
+def _disc_excess(lobe, alpha, nrm, view, paper, p, dA, r, wi, S: int):
+    """The circle's excess over the paper at point ``p`` for the lobe function ``lobe`` (brdf.ward or
+    brdf.ggx) by the quadrature of :func:`_disc_quadrature`, and delta_S's arguments for S copies."""
+    nrm = np.asarray(nrm) / np.linalg.norm(nrm)
+    view = np.asarray(view) / np.linalg.norm(view)
+    f = lobe(alpha, wi, np.broadcast_to(view, wi.shape), np.broadcast_to(nrm, wi.shape))
+    want = (1.0 - paper) * np.sum(f * np.maximum(wi @ nrm, 0) * (p[2] / r) / r ** 2 * dA)
+    return want, (np.tile(p, (S, 1)), np.tile(nrm, (S, 1)), np.tile(view, (S, 1)), alpha)
+
+
 def test_circle_area_samples_keep_dS_unbiased_and_less_noisy():
     """Lobes that reflect a white circle, sharp to broad: dS with the circle minus dS without it is
     the circle's excess over the paper, int_disc (1 - paper) f cos_i cos_c / r^2 dA (dense polar
@@ -204,11 +230,7 @@ def test_circle_area_samples_keep_dS_unbiased_and_less_noisy():
                              (0.25, [1.0, 0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]),     # broad
                              (0.25, [1.0, 0, 0], [0.6, 0.3, 0.75]),                    # circle off the mirror ray
                              (0.12, [1.0, 0, -0.3], [0.8, -0.1, 0.6])):
-        nrm = np.asarray(nrm) / np.linalg.norm(nrm)
-        view = np.asarray(view) / np.linalg.norm(view)
-        f = ward(alpha, wi, np.broadcast_to(view, wi.shape), np.broadcast_to(nrm, wi.shape))
-        want = (1.0 - paper) * np.sum(f * np.maximum(wi @ nrm, 0) * (p[2] / r) / r ** 2 * dA)
-        args = (np.tile(p, (S, 1)), np.tile(nrm, (S, 1)), np.tile(view, (S, 1)), alpha)
+        want, args = _disc_excess(ward, alpha, nrm, view, paper, p, dA, r, wi, S)
         # one call with S copies of the sample: S independent estimates
         new = nfc.delta_S(*args, n_samples=4, seed=1) - nf0.delta_S(*args, n_samples=4, seed=1)
         old = nfc.delta_S(*args, n_samples=4, seed=1, reference=True) - nf0.delta_S(*args, n_samples=4, seed=1,
@@ -243,20 +265,9 @@ def test_delta_S_of_a_ggx_lobe_matches_brute_force_including_its_tail():
     from appfusion.brdf import ggx
     from replay.synth.materials import ggx as ggx_scanner
 
-    env = _env()
-    paper = np.array([0.08, 0.06, 0.04])
-    env_p = _env(lower=paper)
-    nf = SupportPlaneLight(env, FAR, R_FAR, paper, extent_m=1e4)
+    env, _, env_p, nf = _paper_hemisphere()
     rng = np.random.default_rng(0)
-    m = 30
-    n = rng.normal(size=(m, 3))
-    n[:, 2] = np.abs(n[:, 2]) * 0.3
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    wo = n + rng.normal(size=(m, 3)) * 0.3
-    wo[:, 2] = np.abs(wo[:, 2]) + 0.3
-    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    keep = np.sum(n * wo, 1) > 0.3
-    n, wo = n[keep], wo[keep]
+    n, wo = _side_views(rng, 30)
     # the tail set: normals 40-60 degrees from vertical, views such that the mirror ray is 25 deg up
     k = 12
     az = rng.uniform(0, 2 * np.pi, k)
@@ -291,14 +302,7 @@ def test_fast_ggx_delta_S_matches_the_per_ray_reference_and_ward_is_unchanged():
     """Mixed Ward and GGX samples: the vectorised GGX estimator against the per-ray reference
     (sample_ggx, ggx, delta_radiance on every ray) on the same random numbers; lobe=None, "ward" and
     "diffuse" give Ward's numbers bit for bit; unknown names are refused."""
-    env = _env()
-    d = oc.sphere_directions(N)
-    env = env * (1.0 + 0.5 * np.sin(7 * d[..., :1]) * np.cos(5 * d[..., 1:2])).astype(np.float32)
-    centres = np.array([[0.12, 0.1, 0], [-0.15, 0.05, 0], [0.0, -0.14, 0], [0.3, 0.3, 0]], float)
-    radii = np.array([0.025, 0.03, 0.02, 0.025])
-    nf = SupportPlaneLight(env, centres, radii, [0.05, 0.06, 0.04], extent_m=0.35)
-    nodes = np.arange(-0.35, 0.351, 0.01)
-    nf.shadow = (nodes, 0.5 + 0.5 * np.cos(nodes[:, None] * 20) * np.sin(nodes[None, :] * 13))
+    nf = _textured_plane()
     p, n, wo, al = _lobes_near_circles(2000, 1)
     lobe = np.where(np.arange(len(p)) % 3 == 0, "ward", "ggx")
     for ns in (4, 16):
@@ -328,11 +332,7 @@ def test_circle_area_samples_keep_ggx_dS_unbiased():
                              (0.12, [1.0, 0, 0], [np.sqrt(0.5), 0, np.sqrt(0.5)]),
                              (0.3, [1.0, 0, 0], [0.6, 0.3, 0.75]),
                              (0.12, [1.0, 0, -0.3], [0.8, -0.1, 0.6])):
-        nrm = np.asarray(nrm) / np.linalg.norm(nrm)
-        view = np.asarray(view) / np.linalg.norm(view)
-        f = ggx(alpha, wi, np.broadcast_to(view, wi.shape), np.broadcast_to(nrm, wi.shape))
-        want = (1.0 - paper) * np.sum(f * np.maximum(wi @ nrm, 0) * (p[2] / r) / r ** 2 * dA)
-        args = (np.tile(p, (S, 1)), np.tile(nrm, (S, 1)), np.tile(view, (S, 1)), alpha)
+        want, args = _disc_excess(ggx, alpha, nrm, view, paper, p, dA, r, wi, S)
         assert want[0] > 1e-3
         for kw in ({}, {"circle_samples": 0}):
             est = (nfc.delta_S(*args, n_samples=4, seed=1, lobe="ggx", **kw)

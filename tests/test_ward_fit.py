@@ -136,6 +136,12 @@ def test_saturated_texels_are_left_out(pairs):
     assert abs(ok.alpha / 0.1 - 1) < 0.003 < abs(biased.alpha / 0.1 - 1)
 
 
+def _emitter_gains(rng: np.random.Generator, m: int):
+    """The Kinect's shifted-Gamma emitter noise (k, theta, shift) and m per-sample gains of mean 1."""
+    k, theta, shift = 1.6, 2.8, 3.4
+    return (k, theta, shift), (rng.gamma(k, theta, m) + shift) / (k * theta + shift)
+
+
 def test_clipped_highlight_with_emitter_noise_is_modelled_not_dropped(pairs):
     """A sharp lobe whose peak the sensor clips heavily, under the Kinect's shifted-Gamma emitter
     noise (what the synthetic scan shows: 99 % of the samples within 3 degrees of the axis clipped).
@@ -145,8 +151,7 @@ def test_clipped_highlight_with_emitter_noise_is_modelled_not_dropped(pairs):
 
     wi, wo = pairs
     rng = np.random.default_rng(8)
-    k, theta, shift = 1.6, 2.8, 3.4
-    Zf = (rng.gamma(k, theta, len(wi)) + shift) / (k * theta + shift)
+    (k, theta, shift), Zf = _emitter_gains(rng, len(wi))
     alpha, rho_s, d = 0.06, 0.12, 0.5 / np.pi
     f = (d + rho_s * _ward(alpha, wi, wo, Z)) * Zf
     clip = 3.0 * d                                     # peak ~ 17 d: clipped far down its flanks
@@ -171,8 +176,7 @@ def test_pattern_divided_samples_fit_unclipped_texels_and_bound_clipped_ones(pai
     texels' unclipped means are fitted as they are; texels clipped throughout are lower bounds."""
     wi, wo = pairs
     rng = np.random.default_rng(9)
-    k, theta, shift = 1.6, 2.8, 3.4
-    Zf = (rng.gamma(k, theta, len(wi)) + shift) / (k * theta + shift)
+    (k, theta, shift), Zf = _emitter_gains(rng, len(wi))
     alpha, rho_s, d = 0.06, 0.12, 0.5 / np.pi
     f = d + rho_s * _ward(alpha, wi, wo, Z)
     raw = f * Zf                                       # what the sensor sees, before clipping
@@ -299,8 +303,7 @@ def test_ggx_fits_clipped_highlights_censored_and_pattern_divided(pairs):
 
     wi, wo = pairs
     rng = np.random.default_rng(9)
-    k, theta, shift = 1.6, 2.8, 3.4
-    Zf = (rng.gamma(k, theta, len(wi)) + shift) / (k * theta + shift)
+    (k, theta, shift), Zf = _emitter_gains(rng, len(wi))
     alpha, rho_s, d = 0.15, 0.3, 0.5 / np.pi
     raw = (d + rho_s * ggx(alpha, wi, wo, Z)) * Zf
     clip = 3.0 * d
