@@ -588,8 +588,6 @@ def test_ggx_proposal_is_less_noisy_than_ward_proposal_on_ggx_points():
     """GGX points under a smooth sky (all Monte Carlo): the visible-normal proposal and Ward's half
     vector proposal (with its own pdf) agree on the mean, and the visible normals' noise is lower,
     most of all for sharp lobes (measured: variance ratio ~12 at alpha 0.05, ~1.9 at 0.15)."""
-    import appfusion.relight as rl
-
     sampler = EnvSampler(_sky_gradient_env())
     assert len(sampler.emitters) == 0
     M = 40
@@ -597,18 +595,18 @@ def test_ggx_proposal_is_less_noisy_than_ward_proposal_on_ggx_points():
     wo = np.stack([np.sin(th), np.zeros(M), np.cos(th)], 1)
     nn = np.tile([0, 0, 1.0], (M, 1))
     res = {}
-    try:
-        for prop in ("vndf", "ward"):
-            rl._GGX_PROPOSAL = prop
-            res[prop] = np.array([shade_points(np.zeros((M, 3)), nn, wo, np.zeros((M, 3)), np.full((M, 3), 0.5),
-                                               np.full(M, 0.05), sampler, spp=16, seed=s, lobe="ggx")[:, 0]
-                                  for s in range(30)])
-    finally:
-        rl._GGX_PROPOSAL = "vndf"
+    for prop in ("vndf", "ward"):
+        res[prop] = np.array([shade_points(np.zeros((M, 3)), nn, wo, np.zeros((M, 3)), np.full((M, 3), 0.5),
+                                           np.full(M, 0.05), sampler, spp=16, seed=s, lobe="ggx",
+                                           ggx_proposal=prop)[:, 0]
+                              for s in range(30)])
     mv, mw = res["vndf"].mean(0), res["ward"].mean(0)
     sv, sw = res["vndf"].std(0), res["ward"].std(0)
     assert np.all(np.abs(mw - mv) < 4 * np.hypot(sv, sw) / np.sqrt(30))
     assert np.median(sv / mv) < 0.06 and np.median((sw / sv) ** 2) > 3
+    with pytest.raises(AppFusionError, match="ggx_proposal"):
+        shade_points(np.zeros((M, 3)), nn, wo, np.zeros((M, 3)), np.full((M, 3), 0.5), np.full(M, 0.05), sampler,
+                     lobe="ggx", ggx_proposal="beckmann")
 
 
 def test_render_view_shades_each_cluster_with_its_model_lobe(monkeypatch):
