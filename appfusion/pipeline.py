@@ -559,6 +559,7 @@ class ScanRunner:
         lobes = (c.ir_lobes,) if isinstance(c.ir_lobes, str) else tuple(c.ir_lobes or ())
         if not lobes or any(str(x) not in LOBES for x in lobes):
             raise AppFusionError(f"scan config: ir_lobes must name one or more lobes among {LOBES}, got {c.ir_lobes!r}")
+        self._ir_lobe_names = tuple(str(x) for x in lobes)          # what the IR fits choose between
         if not (isinstance(c.texture_size, (int, np.integer)) and 16 <= int(c.texture_size) <= 16384):
             raise AppFusionError(f"scan config: texture_size (side of the exported texture maps, texels) must be an "
                                  f"integer in [16, 16384], got {c.texture_size!r}")
@@ -1179,9 +1180,8 @@ class ScanRunner:
             from .geometry_pass import open_boundary_points
 
             rim = open_boundary_points(P, self.mesh[0], self.mesh[1], self.config.ir_rim_m)
-        lobes = (self.config.ir_lobes,) if isinstance(self.config.ir_lobes, str) else tuple(self.config.ir_lobes)
         ir = IRPass(P, N, self.ir_profile, hbsab_n=self.config.hbsab_n, k=self.config.k_clusters, rim=rim,
-                    lobes=lobes)
+                    lobes=self._ir_lobe_names)
         for i, lab in self._painted.items():
             ir.set_labels([i], lab)
         return ir
