@@ -14,7 +14,9 @@ device) and routes each to the pass it belongs to (``Frame.pass_name``, set by r
 Every pass keeps constant-size state. The runner publishes :class:`Snapshot` objects (small copies
 of that state) for the GUI and the CLI's progress; the GUI never touches the engine's arrays.
 Each finished stage is checkpointed in ``out_dir/state/`` so a scan that was killed resumes from the
-last finished stage when run again with the same output folder.
+last finished stage when run again with the same output folder. A checkpoint is keyed on what its
+stage depends on (:data:`STAGE_UPSTREAM`, :data:`STAGE_CONFIG`), so a rerun with another colour option
+or environment map recomputes only the stages that depend on it.
 """
 
 from __future__ import annotations
@@ -349,6 +351,72 @@ class ScanConfig:
         return asdict(self)
 
 
+#: The checkpointed stages and the stages whose output each one takes (directly or not). A stage's
+#: checkpoint is reused only while the configuration fields of the stage and of its upstream
+#: (:data:`STAGE_CONFIG`), the given map or IR profile they take, the recording and the engine
+#: version are what they were, and no upstream stage was recomputed in this run; a stage that is
+#: not upstream of another never invalidates it (a new environment map recomputes the colour stage
+#: only, a colour option keeps the geometry, the IR clusters and the map).
+STAGE_UPSTREAM = {
+    "ir-calibration": (),
+    "environment": (),
+    "geometry": (),
+    "ir": ("ir-calibration", "geometry"),
+    "rgb": ("ir-calibration", "environment", "geometry", "ir"),
+}
+
+#: The :class:`ScanConfig` fields each stage's result depends on (its own; a stage's checkpoint key
+#: also holds its upstream's). The environment pass tracks the camera with the geometry pass's
+#: tracker and object box, so it keys on the geometry's fields as well. Every field is listed under
+#: a stage or in :data:`UNKEYED_CONFIG` (a test checks this), so a new field must say which.
+_GEOMETRY_FIELDS = ("frame_stride", "n_points", "voxel_m", "box_height_m", "refuse_geometry", "refuse_rounds",
+                    "refuse_voxel_scale", "refuse_fine_scale", "refuse_trunc_voxels", "refuse_fine_trunc_voxels",
+                    "refuse_fine_trunc_min_frames", "crease_radius_voxels", "plane_snap")
+STAGE_CONFIG = {
+    "ir-calibration": ("frame_stride", "ir_pattern"),
+    "environment": _GEOMETRY_FIELDS + ("envmap_n", "ball_radius_m", "mirror_reflectance", "ball_on_plane",
+                                       "ball_max_scatter"),
+    "geometry": _GEOMETRY_FIELDS,
+    "ir": ("hbsab_n", "k_clusters", "ir_rim_m", "ir_lobes", "ir_interior_m", "refine_poses"),
+    "rgb": ("rho_d_percentile", "rho_d_bins", "rho_d_estimator", "rho_d_pool_k", "rho_d_pool_z",
+            "rho_d_clip_correction", "rgb_split", "rgb_colour_regions", "rgb_resweep", "near_field",
+            "near_field_final_samples", "map_blur_correction", "diffuse_tau", "rgb_sampling",
+            "normal_refine_rounds", "normal_refine_jet_residual", "normal_refine_deg", "normal_refine_screen",
+            "normal_refine_min_gain"),
+}
+#: Fields no checkpoint depends on: the export's texture size and the GUI's snapshot rate.
+UNKEYED_CONFIG = ("texture_size", "snapshot_interval_s")
+
+
+def stage_closure(stage: str) -> tuple[str, ...]:
+    """``stage`` and every stage upstream of it (:data:`STAGE_UPSTREAM`), in the order they run."""
+    up = set(STAGE_UPSTREAM[stage]) | {stage}
+    return tuple(s for s in STAGE_UPSTREAM if s in up)
+
+
+def stage_config(config: ScanConfig, stage: str) -> dict[str, Any]:
+    """The configuration ``stage``'s checkpoint is keyed on: the fields of the stage and of its
+    upstream (:data:`STAGE_CONFIG`), as JSON values."""
+    cfg = config.to_json()
+    names = sorted({f for s in stage_closure(stage) for f in STAGE_CONFIG[s]})
+    return {k: cfg[k] for k in names}
+
+
+def _digest(*parts) -> str:
+    """A short content hash of arrays and JSON-able values (the given map or IR profile of a scan)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=12)
+    for p in parts:
+        if isinstance(p, np.ndarray):
+            a = np.ascontiguousarray(p)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+        else:
+            h.update(json.dumps(p, sort_keys=True, default=str).encode())
+    return h.hexdigest()
+
+
 @dataclass
 class Snapshot:
     """What the engine looks like now: small copies the GUI may keep and draw.
@@ -620,6 +688,10 @@ class ScanRunner:
         # pass state
         self.ir_profile = self._load_ir_profile(ir_profile)
         self.env = self._load_envmap(envmap)
+        # what a given map or IR profile is, for the checkpoint keys of the stages that take them
+        self._given = {"envmap": None if self.env is None else _digest(self.env.radiance, self.env.meta),
+                       "ir_profile": None if self.ir_profile is None else self._profile_digest(self.ir_profile)}
+        self._recomputed: set[str] = set()      # stages recomputed in this run (their downstream follows)
         self.geometry = None      # fusion + tracking state of the object passes
         self.env_geometry = None  # tracking state of the environment pass
         self.lighting = None
@@ -778,47 +850,86 @@ class ScanRunner:
     def state_dir(self) -> Path:
         return self.out_dir / "state"
 
-    def _checkpoint_key(self) -> str:
-        """What a checkpoint was computed from: engine version, the knobs that change results, the
-        recording (path, frame count, creation time)."""
-        cfg = {k: v for k, v in self.config.to_json().items() if k not in ("texture_size", "snapshot_interval_s")}
+    @staticmethod
+    def _profile_digest(profile) -> str:
+        pat = getattr(profile, "pattern", None)
+        arrays = [np.asarray(getattr(pat, k)) for k in ("values", "counts")] if pat is not None else []
+        return _digest(profile.to_json(), *arrays)
+
+    def _checkpoint_key(self, stage: str) -> str:
+        """What ``stage``'s checkpoint was computed from: engine version, the configuration of the
+        stage and of its upstream (:func:`stage_config`), the map or IR profile given to the runner
+        where the stage takes it, the recording (path, frame count, creation time)."""
         src = self.source
         meta = src.meta if isinstance(src.meta, dict) else {}
         ident = {"path": str(getattr(src, "path", getattr(src, "name", ""))),
                  "frames": len(src) if getattr(src, "is_recording", False) else None,
                  "created": meta.get("created")}
-        return json.dumps({"engine": CHECKPOINT_VERSION, "config": cfg, "source": ident}, sort_keys=True, default=str)
+        closure = stage_closure(stage)
+        given = {"envmap": self._given["envmap"] if "environment" in closure else None,
+                 "ir_profile": self._given["ir_profile"] if "ir-calibration" in closure else None}
+        return json.dumps({"engine": CHECKPOINT_VERSION, "stage": stage, "config": stage_config(self.config, stage),
+                           "given": given, "source": ident}, sort_keys=True, default=str)
 
     def _stage_done(self, stage: str) -> bool:
-        """A valid checkpoint of ``stage`` exists: same key (:meth:`_checkpoint_key`) and no earlier
-        stage was recomputed in this run (a recomputed stage invalidates everything after it)."""
+        """A valid checkpoint of ``stage`` exists: the same key (:meth:`_checkpoint_key`) and no stage
+        upstream of it (:data:`STAGE_UPSTREAM`) recomputed in this run. A stage that will run is
+        recorded as recomputed, so that its downstream follows."""
         path = self.state_dir / f"{stage}.done"
         ok = False
-        if path.exists() and not getattr(self, "_recomputing", False):
+        if path.exists() and not self._recomputed.intersection(STAGE_UPSTREAM[stage]):
             try:
-                ok = json.loads(path.read_text()).get("key") == self._checkpoint_key()
+                old = json.loads(path.read_text()).get("key")
             except (OSError, ValueError, AttributeError):
-                ok = False
+                old = None
+            ok = old == self._checkpoint_key(stage)
             if not ok:
-                self._note(f"{stage}: the checkpoint in {self.state_dir} was made from another recording, "
-                           "configuration or engine version: recomputing")
+                self._note(f"{stage}: the checkpoint in {self.state_dir} was made from "
+                           f"{self._key_change(old, stage)}: recomputing")
         if not ok:
-            self._recomputing = True
+            self._recomputed.add(stage)
         return ok
+
+    def _key_change(self, old, stage: str) -> str:
+        """What differs between a stored checkpoint key and ``stage``'s key now, in words."""
+        try:
+            was = json.loads(old)
+        except (TypeError, ValueError):
+            was = None
+        if not isinstance(was, dict) or "stage" not in was:
+            return "an older engine version (its checkpoints are keyed another way)"
+        now = json.loads(self._checkpoint_key(stage))
+        if was.get("engine") != now["engine"]:
+            return f"engine version {was.get('engine')} (this one is {now['engine']})"
+        if was.get("source") != now["source"]:
+            return "another recording"
+        what = []
+        cfg0, cfg1 = was.get("config") or {}, now["config"]
+        changed = [k for k in sorted(set(cfg0) | set(cfg1)) if cfg0.get(k, "(unset)") != cfg1.get(k, "(unset)")]
+        if changed:
+            what.append("another configuration (" + ", ".join(
+                f"{k} {cfg0.get(k, '(unset)')!r} -> {cfg1.get(k, '(unset)')!r}" for k in changed[:4])
+                + (f", and {len(changed) - 4} more" if len(changed) > 4 else "") + ")")
+        g0, g1 = was.get("given") or {}, now["given"]
+        for k, name in (("envmap", "environment map"), ("ir_profile", "IR profile")):
+            if g0.get(k) != g1.get(k):
+                what.append(f"another given {name}" if g1.get(k) and g0.get(k) else
+                            (f"a given {name} (none now)" if g0.get(k) else f"no given {name} (one now)"))
+        return " and ".join(what) or "another key"
 
     def _reuse(self, stage: str, what: str, path=None, load=None):
         """The checkpoint of ``stage`` (``load(path)``; by default the arrays of ``STAGE.npz``), or None
         when the stage must run: no valid checkpoint, or a file that does not load (a disk that filled,
-        a copy cut short: noted, and this stage and the later ones are recomputed)."""
+        a copy cut short: noted, and this stage and those downstream of it are recomputed)."""
         path = self.state_dir / f"{stage}.npz" if path is None else path
         if not self._stage_done(stage):
             return None
         try:
             obj = (load or _read_npz)(path)
         except Exception as e:  # noqa: BLE001 - numpy, zipfile and the loaders raise many types for a bad file
-            # a missing file lands here too: recompute this stage and, since it changes, the later ones
+            # a missing file lands here too: recompute this stage and, since it changes, its downstream
             self._note(f"{stage}: the checkpoint {path} is unreadable ({type(e).__name__}: {e}): recomputing")
-            self._recomputing = True
+            self._recomputed.add(stage)
             return None
         self._note(f"{stage}: reusing the checkpointed {what}")
         return obj
@@ -844,7 +955,7 @@ class ScanRunner:
     def _mark_done(self, stage: str, info: dict | None = None) -> None:
         self.state_dir.mkdir(parents=True, exist_ok=True)
         tmp = self.state_dir / f"{stage}.done.tmp"
-        tmp.write_text(json.dumps({"key": self._checkpoint_key(), "config": self.config.to_json(), **(info or {})},
+        tmp.write_text(json.dumps({"key": self._checkpoint_key(stage), "config": self.config.to_json(), **(info or {})},
                                   default=str))
         os.replace(tmp, self.state_dir / f"{stage}.done")
 

@@ -14,8 +14,8 @@ from replay.session import SessionReader
 SMALL = dict(n_points=3000, texture_size=64, envmap_n=32, hbsab_n=16)
 
 
-def _run(session, out, stop_at=None, **cfg):
-    env = session / "truth" / "envmaps" / "office.exr"        # 12 frames are too few for the ball fit
+def _run(session, out, stop_at=None, env="office", **cfg):
+    env = session / "truth" / "envmaps" / f"{env}.exr"        # 12 frames are too few for the ball fit
     log: list[str] = []
     with SessionReader(session) as src:
         r = ScanRunner(src, out, ScanConfig(**{**SMALL, **cfg}), envmap=env, log=log.append)
@@ -175,6 +175,48 @@ def test_checkpoints_of_another_configuration_are_recomputed(kinect_sphere, tmp_
     r3, _ = _run(kinect_sphere, out, n_points=2000)            # same again: all reused
     assert not any("recomputing" in m for m in r3.messages)
     assert any("reusing the checkpointed" in m for m in r3.messages)
+
+
+def test_every_config_field_is_keyed_to_the_stages_it_changes():
+    """Each ScanConfig field is listed under the stage it changes or as unkeyed, so that a new field
+    has to say which checkpoints it invalidates; the upstream lists name stages only."""
+    from dataclasses import fields
+
+    from appfusion.pipeline import STAGE_CONFIG, STAGE_UPSTREAM, UNKEYED_CONFIG, stage_closure, stage_config
+
+    keyed = {f for names in STAGE_CONFIG.values() for f in names}
+    assert keyed | set(UNKEYED_CONFIG) == {f.name for f in fields(ScanConfig)}
+    assert not keyed & set(UNKEYED_CONFIG)
+    assert set(STAGE_CONFIG) == set(STAGE_UPSTREAM)
+    assert all(set(up) <= set(STAGE_UPSTREAM) - {s} for s, up in STAGE_UPSTREAM.items())
+    assert stage_closure("rgb") == ("ir-calibration", "environment", "geometry", "ir", "rgb")
+    assert stage_closure("geometry") == ("geometry",)
+    cfg = stage_config(ScanConfig(rho_d_pool_k=8), "rgb")
+    assert cfg["rho_d_pool_k"] == 8 and cfg["n_points"] == 100_000 and "texture_size" not in cfg
+    assert "rho_d_pool_k" not in stage_config(ScanConfig(), "geometry")
+
+
+def test_a_rerun_recomputes_only_the_stages_a_change_reaches(kinect_sphere, tmp_path):
+    """Another environment map recomputes the colour stage alone (before, its checkpoint was reused
+    and the result kept the first map's rho_d, 3x off under another map); another colour option
+    likewise; the same again reuses everything. Each rerun matches a scan made from scratch."""
+    out = tmp_path / "scan"
+    _, office = _run(kinect_sphere, out)
+    r, sunset = _run(kinect_sphere, out, env="sunset")
+    reused = [m for m in r.messages if "reusing the checkpointed" in m]
+    assert [m.split(":")[0] for m in reused] == ["ir-calibration", "geometry", "ir"], r.messages
+    assert any(m.startswith("rgb: the checkpoint") and "another given environment map" in m and "recomputing" in m
+               for m in r.messages), r.messages
+    _, fresh = _run(kinect_sphere, tmp_path / "fresh", env="sunset")
+    np.testing.assert_allclose(sunset.rho_d, fresh.rho_d, rtol=1e-6, atol=1e-9)
+    assert np.median(sunset.rho_d / np.maximum(office.rho_d, 1e-6)) > 1.5      # not the office map's rho_d
+    r, pooled = _run(kinect_sphere, out, env="sunset", rho_d_pool_k=4)
+    assert [m.split(":")[0] for m in r.messages if "reusing the checkpointed" in m] == ["ir-calibration", "geometry", "ir"]
+    assert any(m.startswith("rgb: the checkpoint") and "rho_d_pool_k 32 -> 4" in m for m in r.messages), r.messages
+    assert not np.array_equal(pooled.rho_d, sunset.rho_d)
+    r, again = _run(kinect_sphere, out, env="sunset", rho_d_pool_k=4)
+    assert not any("recomputing" in m for m in r.messages)
+    np.testing.assert_array_equal(again.rho_d, pooled.rho_d)
 
 
 def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_path):
