@@ -14,11 +14,11 @@ from replay.session import SessionReader
 SMALL = dict(n_points=3000, texture_size=64, envmap_n=32, hbsab_n=16)
 
 
-def _run(session, out, stop_at=None, env="office", **cfg):
+def _run(session, out, stop_at=None, env="office", ir_profile=None, **cfg):
     env = session / "truth" / "envmaps" / f"{env}.exr"        # 12 frames are too few for the ball fit
     log: list[str] = []
     with SessionReader(session) as src:
-        r = ScanRunner(src, out, ScanConfig(**{**SMALL, **cfg}), envmap=env, log=log.append)
+        r = ScanRunner(src, out, ScanConfig(**{**SMALL, **cfg}), envmap=env, ir_profile=ir_profile, log=log.append)
         if stop_at:
             r.subscribe(lambda snap: r.stop() if snap.stage == stop_at else None)
         res = r.run()
@@ -217,6 +217,10 @@ def test_a_rerun_recomputes_only_the_stages_a_change_reaches(kinect_sphere, tmp_
     r, again = _run(kinect_sphere, out, env="sunset", rho_d_pool_k=4)
     assert not any("recomputing" in m for m in r.messages)
     np.testing.assert_array_equal(again.rho_d, pooled.rho_d)
+    # a given IR profile (here the one the scan calibrated) recomputes what takes it: IR and colour
+    r, _ = _run(kinect_sphere, out, env="sunset", rho_d_pool_k=4, ir_profile=out / "state" / "ir_profile.json")
+    assert [m.split(":")[0] for m in r.messages if "reusing the checkpointed" in m] == ["geometry"], r.messages
+    assert any(m.startswith("ir: the checkpoint") and "no given IR profile (one now)" in m for m in r.messages)
 
 
 def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_path):
