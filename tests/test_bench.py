@@ -374,7 +374,8 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     monkeypatch.setattr(P, "run_scan", fake_run_scan)
     ctx = BenchContext(workdir=tmp_path, quick=True, stage="scan", log=lambda s: None)
     got = S.run(ctx)
-    assert seen == [None, 0.035, None, 0.035]                    # the two-material scan, then the matte one
+    # the two-material scan, the matte one, then the two-material scan rerun with a colour option
+    assert seen == [None, 0.035, None, 0.035, 0.035]
     assert got["relit_rel_rmse"] == 0.25 and got["scan_ate_mm"] == 1.5 and got["scan_label_accuracy"] == 0.9
     assert got["scan_envmap_median_rel_err"] is None and got["scan_rho_s_rel_err"] is None   # NaN / missing
     assert got["demo_scan_s"] >= 0.05 and set(got) <= set(METRICS)
@@ -387,6 +388,7 @@ def test_scan_stage_metrics_notes_and_ball_fallback(tmp_path, monkeypatch):
     assert e["matte"]["fallback"]["ball_radius_m"] == 0.035 and "radius given" in ctx.notes["scan_matte_rho_s"]
     assert got["scan_matte_relit_rel_rmse"] == 0.25 and got["scan_matte_rho_s"] is None   # not in the stand-in's metrics
     assert 0.0 <= got["skip_lighting_saving"] <= 1.0
+    assert e["skip_rerun"]["stages_reused"] == [] and "normal_refine_rounds None -> 0" in e["skip_rerun"]["what"]
     # the GGX two-material scan is the full bench's: null under --quick, and said why
     assert all(got[k] is None and "full bench only" in ctx.notes[k] for k in S.GGX_METRICS.values())
     assert "ggx" not in e
@@ -449,7 +451,7 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     # 55 s alone there, 61 s beside the rest of the suite), so it is printed, not bounded
     print(f"scan stage {time.perf_counter() - t0:.1f} s, of which the scan {ctx.extra['scan']['wall_s']:.1f} s")
     assert ctx.extra["scan"]["wall_s"] < 150                  # a regression guard (5x), not a timing
-    assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving",
+    assert set(got) == {"relit_rel_rmse", "demo_scan_s", "skip_lighting_saving", "skip_wavelet_saving", "skip_rerun_saving",
                         "scan_ir_pattern_heldout_cv", "fast_sweep_tracked", *S.SCAN_METRICS.values(),
                         *S.MATTE_METRICS.values(), *S.GGX_METRICS.values()}
     fast = ctx.extra["scan"]["fast_sweep"]
@@ -471,6 +473,11 @@ def test_scan_stage_end_to_end_small_session(tmp_path, monkeypatch):
     assert {"ir-calibration", "environment", "geometry", "rgb", "evaluation", "export"} <= set(st)
     assert sum(st.values()) == pytest.approx(e["wall_s"], rel=0.01, abs=0.05)
     assert 0 < got["skip_lighting_saving"] < 1 and e["skip_lighting"]["saved_s"] == pytest.approx(st["environment"], abs=0.01)
+    # a rerun with a colour option recomputes the colour stage alone, with the same relit error
+    rr = e["skip_rerun"]
+    assert rr["stages_reused"] == ["ir-calibration", "environment", "geometry", "ir"], rr
+    assert 0 < got["skip_rerun_saving"] < 1 and rr["rerun_s"] < rr["first_s"]
+    assert rr["relit_rel_rmse_rerun"] == pytest.approx(rr["relit_rel_rmse_first"], rel=0.02), rr
     sw = e["skip_wavelet"]["scan_clusters"]
     if sw.get("saving") is not None:
         assert sw["nodes_built"] <= sw["nodes_total"] and sw["max_rel_diff"] < 5e-3

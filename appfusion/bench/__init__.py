@@ -113,4 +113,5 @@ METRICS: dict[str, tuple[str, float | None, str]] = {
     "skip_fusion_saving": ("fraction", None, "higher"),
     "skip_lighting_saving": ("fraction", None, "higher"),
     "skip_wavelet_saving": ("fraction", None, "higher"),
+    "skip_rerun_saving": ("fraction", None, "higher"),        # a rerun with a colour option: checkpoints reused
 }
