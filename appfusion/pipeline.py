@@ -880,12 +880,13 @@ class ScanRunner:
         if path.exists() and not self._recomputed.intersection(STAGE_UPSTREAM[stage]):
             try:
                 old = json.loads(path.read_text()).get("key")
-            except (OSError, ValueError, AttributeError):
-                old = None
+                why = None
+            except (OSError, ValueError, AttributeError) as e:
+                old, why = None, f"its record {path.name} is unreadable ({type(e).__name__})"
             ok = old == self._checkpoint_key(stage)
             if not ok:
-                self._note(f"{stage}: the checkpoint in {self.state_dir} was made from "
-                           f"{self._key_change(old, stage)}: recomputing")
+                why = why or f"it was made from {self._key_change(old, stage)}"
+                self._note(f"{stage}: the checkpoint in {self.state_dir} is not reused: {why}; recomputing")
         if not ok:
             self._recomputed.add(stage)
         return ok
@@ -897,7 +898,7 @@ class ScanRunner:
         except (TypeError, ValueError):
             was = None
         if not isinstance(was, dict) or "stage" not in was:
-            return "an older engine version (its checkpoints are keyed another way)"
+            return "a key this engine does not read (an older engine's, keyed another way)"
         now = json.loads(self._checkpoint_key(stage))
         if was.get("engine") != now["engine"]:
             return f"engine version {was.get('engine')} (this one is {now['engine']})"

@@ -221,6 +221,11 @@ def test_a_rerun_recomputes_only_the_stages_a_change_reaches(kinect_sphere, tmp_
     r, _ = _run(kinect_sphere, out, env="sunset", rho_d_pool_k=4, ir_profile=out / "state" / "ir_profile.json")
     assert [m.split(":")[0] for m in r.messages if "reusing the checkpointed" in m] == ["geometry"], r.messages
     assert any(m.startswith("ir: the checkpoint") and "no given IR profile (one now)" in m for m in r.messages)
+    # a stage record that does not parse is recomputed, and so is everything downstream of it
+    (out / "state" / "geometry.done").write_text("{not json")
+    r, _ = _run(kinect_sphere, out, env="sunset", rho_d_pool_k=4)
+    assert [m.split(":")[0] for m in r.messages if "reusing the checkpointed" in m] == ["ir-calibration"], r.messages
+    assert any(m.startswith("geometry: the checkpoint") and "geometry.done is unreadable" in m for m in r.messages)
 
 
 def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_path):
