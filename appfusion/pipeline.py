@@ -417,6 +417,35 @@ def _digest(*parts) -> str:
     return h.hexdigest()
 
 
+def _key_change(old, new: str) -> str:
+    """What differs between a stored checkpoint key ``old`` and the key ``new`` a stage has now
+    (:meth:`ScanRunner._checkpoint_key`), in words."""
+    try:
+        was = json.loads(old)
+    except (TypeError, ValueError):
+        was = None
+    if not isinstance(was, dict) or "stage" not in was:
+        return "a key this engine does not read (an older engine's, keyed another way)"
+    now = json.loads(new)
+    if was.get("engine") != now["engine"]:
+        return f"engine version {was.get('engine')} (this one is {now['engine']})"
+    if was.get("source") != now["source"]:
+        return "another recording"
+    what = []
+    cfg0, cfg1 = was.get("config") or {}, now["config"]
+    changed = [k for k in sorted(set(cfg0) | set(cfg1)) if cfg0.get(k, "(unset)") != cfg1.get(k, "(unset)")]
+    if changed:
+        what.append("another configuration (" + ", ".join(
+            f"{k} {cfg0.get(k, '(unset)')!r} -> {cfg1.get(k, '(unset)')!r}" for k in changed[:4])
+            + (f", and {len(changed) - 4} more" if len(changed) > 4 else "") + ")")
+    g0, g1 = was.get("given") or {}, now["given"]
+    for k, name in (("envmap", "environment map"), ("ir_profile", "IR profile")):
+        if g0.get(k) != g1.get(k):
+            what.append(f"another given {name}" if g1.get(k) and g0.get(k) else
+                        (f"a given {name} (none now)" if g0.get(k) else f"no given {name} (one now)"))
+    return " and ".join(what) or "another key"
+
+
 @dataclass
 class Snapshot:
     """What the engine looks like now: small copies the GUI may keep and draw.
@@ -883,40 +912,14 @@ class ScanRunner:
                 why = None
             except (OSError, ValueError, AttributeError) as e:
                 old, why = None, f"its record {path.name} is unreadable ({type(e).__name__})"
-            ok = old == self._checkpoint_key(stage)
+            key = self._checkpoint_key(stage)
+            ok = old == key
             if not ok:
-                why = why or f"it was made from {self._key_change(old, stage)}"
+                why = why or f"it was made from {_key_change(old, key)}"
                 self._note(f"{stage}: the checkpoint in {self.state_dir} is not reused: {why}; recomputing")
         if not ok:
             self._recomputed.add(stage)
         return ok
-
-    def _key_change(self, old, stage: str) -> str:
-        """What differs between a stored checkpoint key and ``stage``'s key now, in words."""
-        try:
-            was = json.loads(old)
-        except (TypeError, ValueError):
-            was = None
-        if not isinstance(was, dict) or "stage" not in was:
-            return "a key this engine does not read (an older engine's, keyed another way)"
-        now = json.loads(self._checkpoint_key(stage))
-        if was.get("engine") != now["engine"]:
-            return f"engine version {was.get('engine')} (this one is {now['engine']})"
-        if was.get("source") != now["source"]:
-            return "another recording"
-        what = []
-        cfg0, cfg1 = was.get("config") or {}, now["config"]
-        changed = [k for k in sorted(set(cfg0) | set(cfg1)) if cfg0.get(k, "(unset)") != cfg1.get(k, "(unset)")]
-        if changed:
-            what.append("another configuration (" + ", ".join(
-                f"{k} {cfg0.get(k, '(unset)')!r} -> {cfg1.get(k, '(unset)')!r}" for k in changed[:4])
-                + (f", and {len(changed) - 4} more" if len(changed) > 4 else "") + ")")
-        g0, g1 = was.get("given") or {}, now["given"]
-        for k, name in (("envmap", "environment map"), ("ir_profile", "IR profile")):
-            if g0.get(k) != g1.get(k):
-                what.append(f"another given {name}" if g1.get(k) and g0.get(k) else
-                            (f"a given {name} (none now)" if g0.get(k) else f"no given {name} (one now)"))
-        return " and ".join(what) or "another key"
 
     def _reuse(self, stage: str, what: str, path=None, load=None):
         """The checkpoint of ``stage`` (``load(path)``; by default the arrays of ``STAGE.npz``), or None
