@@ -231,8 +231,9 @@ def stage_timer() -> Iterator[dict[str, float]]:
             setattr(owner, attr, orig)
 
 
-def timed_scan(session: Path, out: Path, config, envmap=None, log=None) -> dict[str, Any]:
-    """One fresh ``run_scan`` (earlier checkpoints in ``out`` removed) with its wall and stage times.
+def timed_scan(session: Path, out: Path, config, envmap=None, log=None, fresh: bool = True) -> dict[str, Any]:
+    """One ``run_scan`` with its wall and stage times: fresh (earlier checkpoints in ``out`` removed),
+    or with ``fresh=False`` a rerun on the checkpoints ``out`` holds.
 
     Returns ``{"wall_s", "stage_s", "metrics" (the evaluation, or {} without truth), "summary",
     "messages"}``; exceptions of the scan propagate.
@@ -240,7 +241,7 @@ def timed_scan(session: Path, out: Path, config, envmap=None, log=None) -> dict[
     from appfusion.pipeline import run_scan
 
     out = Path(out)
-    if out.exists():
+    if fresh and out.exists():
         shutil.rmtree(out)
     messages: list[str] = []
 
@@ -453,24 +454,17 @@ def rerun_colour(session: Path, out: Path, config, first: dict[str, Any]) -> dic
     reused (from its log), both wall times, the fraction saved and both relit errors."""
     import dataclasses
 
-    from appfusion.pipeline import run_scan
-
     cfg = dataclasses.replace(config, normal_refine_rounds=0 if config.normal_refine_rounds is None else None)
-    messages: list[str] = []
-    t0 = time.perf_counter()
-    run_scan(session, out, config=cfg, progress=False, log=lambda m: messages.append(str(m)))
-    wall = time.perf_counter() - t0
-    metrics_path = Path(out) / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
-    reused = [m.split(":")[0] for m in messages if "reusing the checkpointed" in m]
-    changed = [m for m in messages if "checkpoint" in m and "recomputing" in m]
+    rerun = timed_scan(session, out, cfg, fresh=False)
+    messages, wall = rerun["messages"], rerun["wall_s"]
     return {"what": "the same scan rerun in its output folder with normal_refine_rounds "
                     f"{config.normal_refine_rounds} -> {cfg.normal_refine_rounds} (a colour-stage option)",
-            "stages_reused": reused, "recomputed": changed[:5], "first_s": round(first["wall_s"], 2),
-            "rerun_s": round(wall, 2),
+            "stages_reused": [m.split(":")[0] for m in messages if "reusing the checkpointed" in m],
+            "recomputed": [m for m in messages if "checkpoint" in m and "recomputing" in m][:5],
+            "first_s": round(first["wall_s"], 2), "rerun_s": round(wall, 2), "stage_s": rerun["stage_s"],
             "saving": (1.0 - wall / first["wall_s"]) if first["wall_s"] > 0 else None,
             "relit_rel_rmse_first": first["metrics"].get("relit_rel_rmse"),
-            "relit_rel_rmse_rerun": metrics.get("relit_rel_rmse")}
+            "relit_rel_rmse_rerun": rerun["metrics"].get("relit_rel_rmse")}
 
 
 def _scene_scan(ctx, q: dict[str, Any], name: str, metrics: dict[str, str], info: dict) -> dict[str, Any]:
