@@ -120,6 +120,32 @@ def test_same_seed_same_bytes_also_with_two_worker_processes(kinect_session, tmp
     assert not list(scratch.glob("synth-lighting-*"))
 
 
+def test_a_longer_colour_pass_leaves_the_other_passes_bytes_alone(kinect_session, tmp_path, capsys):
+    """``rgb_frames`` (``appfusion synth --rgb-frames``) samples the rgb pass's orbit more densely; every
+    frame of the other passes is byte for byte the default render's."""
+    longer = render_session("two-material", tmp_path / "long", frames=3, size=SIZE, seed=4, detail="test",
+                            show_progress=False, references=False, rgb_frames=7)
+    a, b = SessionReader(kinect_session), SessionReader(longer)
+    fa, fb = list(a), list(b)
+    assert [f.pass_name for f in fb].count("rgb") == 7 and [f.pass_name for f in fa].count("rgb") == 3
+    other_a = [f for f in fa if f.pass_name != "rgb"]
+    other_b = [f for f in fb if f.pass_name != "rgb"]
+    assert len(other_a) == len(other_b) > 0
+    for x, y in zip(other_a, other_b):
+        assert x.timestamp == y.timestamp and set(x.streams) == set(y.streams)
+        for s in x.streams:
+            np.testing.assert_array_equal(getattr(x, s), getattr(y, s), err_msg=f"{x.pass_name} {x.timestamp} {s}")
+    ts_b = np.array([f.timestamp for f in fb if f.pass_name == "rgb"])
+    assert np.allclose(np.diff(ts_b), 1 / 30, rtol=0, atol=2e-6)  # timestamps kept to the microsecond
+    scene = json.loads((longer / "truth" / "scene.json").read_text())
+    assert scene["rgb_frames"] == 7 and scene["frames_per_pass"] == 3
+    assert [p["frames"] for p in scene["passes"] if p["name"] == "rgb"] == [7]
+    assert main(["synth", "sphere", str(tmp_path / "z"), "--quiet", "--rgb-frames", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "frames of the colour pass must be within 1-100000" in err and "Traceback" not in err
+    assert not (tmp_path / "z").exists()
+
+
 def test_allinone_device_streams_everything_every_frame(tmp_path):
     p = render_session("sphere", tmp_path / "aio", frames=1, size=SIZE, seed=1, detail="test", device="allinone",
                        references=False, show_progress=False)

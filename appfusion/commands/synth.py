@@ -24,6 +24,9 @@ def register(sub) -> None:
     p.add_argument("scene", help="object to scan (or 'list')")
     p.add_argument("out", nargs="?", type=Path, help="new session directory")
     p.add_argument("--frames", type=int, default=60, help="frames per object pass (default 60)")
+    p.add_argument("--rgb-frames", type=int, default=None,
+                   help="frames of the colour pass (kinect1: rgb; allinone: scan) on the same orbit, sampled more "
+                        "densely (default: --frames); a weak lobe's rho_s needs a long one")
     p.add_argument("--size", default="640x480", help="image size WxH of every stream (default 640x480)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="kinect1", choices=["kinect1", "allinone"],
@@ -57,7 +60,7 @@ def run(args) -> int:
                           device=args.device, detail=args.detail, radius_m=args.radius,
                           references=not args.no_references, show_progress=not args.quiet,
                           cache_dir=args.cache or default_cache_dir(), workers=args.workers,
-                          log=None if args.quiet else print)
+                          log=None if args.quiet else print, rgb_frames=args.rgb_frames)
     if args.contact:
         from replay.synth.contact import contact_sheet
 

@@ -275,7 +275,8 @@ def scene_names() -> list[str]:
 def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(640, 480), seed: int = 0,
                    device: str = "kinect1", detail: str = "full", quality: Quality | None = None,
                    radius_m: float = 0.6, references: bool = True, show_progress: bool = True,
-                   cache_dir: str | os.PathLike | None = None, workers: int | None = None, log=None) -> Path:
+                   cache_dir: str | os.PathLike | None = None, workers: int | None = None, log=None,
+                   rgb_frames: int | None = None) -> Path:
     """Render a complete synthetic session of ``scene`` into the new directory ``out``; returns its path.
 
     Parameters
@@ -309,6 +310,12 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
         least 2 cores for sessions of more than ~40 frames of 320 x 240, else 1.
     log : callable, optional
         Called with one-line status messages.
+    rgb_frames : int, optional
+        Frames of the pass that captures the object's colour (the ``rgb`` pass of ``kinect1``, the one
+        ``scan`` pass of ``allinone``) on the same orbit, sampled more densely; default ``frames``. The
+        other passes' bytes do not depend on it (every frame is seeded by seed, pass and index). A long
+        colour pass is what a weak lobe needs: its rho_s's standard error falls as one over the square
+        root of the frames (``docs/rgb-pass.md`` §8).
     """
     from replay.session import SessionWriter, format_timestamp, pose_to_tum
 
@@ -322,6 +329,9 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     frames = int(frames)
     if not 1 <= frames <= 100000:
         raise AppFusionError(f"frames per pass must be >= 1, got {frames}")
+    rgb_frames = frames if rgb_frames is None else int(rgb_frames)
+    if not 1 <= rgb_frames <= 100000:
+        raise AppFusionError(f"frames of the colour pass must be within 1-100000, got {rgb_frames}")
     w, h = _parse_size(size)
     if not (isinstance(seed, (int, np.integer)) and 0 <= int(seed) < 2 ** 32):
         raise AppFusionError(f"synth: the seed must be an integer in [0, 2^32), got {seed!r}")
@@ -380,8 +390,9 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
         plan += [("scan", "obj", C.PathParams(radius_m=radius_m, target_height_m=0.5 * height, **low))]
         stream_of = {"environment": all_streams, "scan": all_streams}
     for k, (name, key, pp) in enumerate(plan):
-        tt, pp_ = C.orbit_path(frames, path_seeds[2 + k], pp, t)
-        passes.append(PassSpec(name, key, stream_of[name], tt, pp_, np.ones(frames, bool), {"path": pp.to_json()}))
+        n = rgb_frames if name in ("rgb", "scan") else frames
+        tt, pp_ = C.orbit_path(n, path_seeds[2 + k], pp, t)
+        passes.append(PassSpec(name, key, stream_of[name], tt, pp_, np.ones(n, bool), {"path": pp.to_json()}))
         t = tt[-1] + PASS_GAP_S
 
     # -- lighting precomputation -------------------------------------------------------------------
@@ -514,6 +525,7 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
         ref_info = render_references(obj, sunset, truth / "references", ri, seed, quality, cache_dir)
     scene_json = {
         "format_version": FORMAT_VERSION, "scene": scene, "seed": seed, "device": device, "frames_per_pass": frames,
+        "rgb_frames": rgb_frames,
         "size": [w, h], "detail": detail, "quality": quality.to_json(),
         "object": {"name": obj.name, "vertices": len(obj.vertices), "faces": len(obj.faces), **obj.info},
         "object_height_m": height,
