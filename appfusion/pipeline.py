@@ -1597,12 +1597,11 @@ class ScanRunner:
                           frame.depth_to_rgb)
             used += 1
             if live and self._progress_due(used, 10):
-                r = rgb.result()
-                hist = self._snap.history
-                hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
-                self._publish(rho_d=np.asarray(r.rho_d, np.float32), rho_s=np.asarray(r.rho_s, np.float32),
-                              rho_s_sigma=None if r.rho_s_sigma is None else np.asarray(r.rho_s_sigma, np.float32),
-                              history=hist)
+                self._publish_rgb_running(rgb, used)
+        # the running estimate at the sweep's last frame too, so that the report's convergence plot
+        # reaches the end of the pass (the doubling schedule stopped the demo's at 160 of 200 frames)
+        if live and used and (self._snap.history.get("rho_s") or [(None,)])[-1][0] != used:
+            self._publish_rgb_running(rgb, used)
         if used == 0:
             raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "
                                    "no marker visible for white balance)")
@@ -1612,6 +1611,15 @@ class ScanRunner:
         if live and lost:
             self._note(f"rgb: tracking lost in {lost} frames")
         return used
+
+    def _publish_rgb_running(self, rgb, used: int) -> None:
+        """The live sweep's running rho_d and rho_s after ``used`` frames, to the GUI and the history."""
+        r = rgb.result()
+        hist = self._snap.history
+        hist.setdefault("rho_s", []).append((used, np.asarray(r.rho_s).tolist()))
+        self._publish(rho_d=np.asarray(r.rho_d, np.float32), rho_s=np.asarray(r.rho_s, np.float32),
+                      rho_s_sigma=None if r.rho_s_sigma is None else np.asarray(r.rho_s_sigma, np.float32),
+                      history=hist)
 
     def _rgb_resweep(self, labels: np.ndarray, alpha: np.ndarray, refitted: np.ndarray, start: int, stop: int,
                      pass_name: str, reassign: bool = True, lobes=None):

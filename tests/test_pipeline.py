@@ -53,6 +53,11 @@ def test_a_scan_rerun_on_its_checkpoints_keeps_the_reports_curves_and_hbsabs(kin
     r1, res1 = _run(kinect_sphere, out)
     h1, s1 = r1.snapshot().history, r1.snapshot()
     assert h1.get("alpha") and h1.get("rho_s") and s1.hbsabs
+    # the curves reach the last frame of their live sweeps (until session 39 the colour one stopped at
+    # the doubling schedule's last step: 160 of the demo's 200 frames)
+    done = {st: json.loads((out / "state" / f"{st}.done").read_text()) for st in ("ir", "rgb")}
+    assert h1["alpha"][-1][0] == done["ir"]["frames"] and h1["rho_s"][-1][0] == done["rgb"]["frames"], \
+        ([f for f, _ in h1["rho_s"]], done["rgb"]["frames"])
     # each cluster's rho_s carries its standard error, and the checkpoint keeps it
     assert np.isfinite(res1.rho_s_sigma).all() and (res1.rho_s_sigma > 0).all(), res1.rho_s_sigma
     # ... which the snapshot (what the GUI shows) carries too, from the run and from the checkpoint
