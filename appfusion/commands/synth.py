@@ -26,7 +26,7 @@ def register(sub) -> None:
     p.add_argument("--frames", type=int, default=60, help="frames per object pass (default 60)")
     p.add_argument("--rgb-frames", type=int, default=None,
                    help="frames of the colour pass (kinect1: rgb; allinone: scan) on the same orbit, sampled more "
-                        "densely (default: --frames); a weak lobe's rho_s needs a long one")
+                        "densely (default: --frames); every other pass byte for byte as without it")
     p.add_argument("--size", default="640x480", help="image size WxH of every stream (default 640x480)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="kinect1", choices=["kinect1", "allinone"],

@@ -313,9 +313,9 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
     rgb_frames : int, optional
         Frames of the pass that captures the object's colour (the ``rgb`` pass of ``kinect1``, the one
         ``scan`` pass of ``allinone``) on the same orbit, sampled more densely; default ``frames``. The
-        other passes' bytes do not depend on it (every frame is seeded by seed, pass and index). A long
-        colour pass is what a weak lobe needs: its rho_s's standard error falls as one over the square
-        root of the frames (``docs/rgb-pass.md`` §8).
+        other passes' bytes do not depend on it (every frame is seeded by seed, pass and index), so the
+        geometry and IR stages of a scan give the same results: it measures how the colour estimates
+        change with the length of the colour pass (``docs/rgb-pass.md`` §8, session 39).
     """
     from replay.session import SessionWriter, format_timestamp, pose_to_tum
 
