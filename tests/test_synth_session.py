@@ -80,6 +80,8 @@ def test_truth_folder(kinect_session):
     from replay.synth.envmaps import load_latlong
 
     for name in ("office", "sunset"):
+        # scene.json names the files relative to truth/ (it named the renamed temporary folder before)
+        assert sc["envmap_files"][name] == {"exr": f"envmaps/{name}.exr", "hdr": f"envmaps/{name}.hdr"}
         exr, hdr = load_latlong(t / "envmaps" / f"{name}.exr"), load_latlong(t / "envmaps" / f"{name}.hdr")
         assert exr.shape == (256, 512, 3) and hdr.shape == (256, 512, 3)
         assert np.median(np.abs(hdr / np.maximum(exr, 1e-6) - 1)) < 0.01  # RGBE keeps ~1% precision

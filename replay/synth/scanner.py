@@ -496,7 +496,10 @@ def render_session(scene: str, out: str | os.PathLike, frames: int = 60, size=(6
                                                               "lobe 'ggx': alpha is the GGX roughness (replay/synth/"
                                                               "materials.py)"}, indent=2))
     sunset = envmaps.sunset()
-    env_files = {e.name: e.save(truth / "envmaps") for e in (office, sunset)}
+    # paths relative to truth/ (as the references' are): the session is rendered into a temporary folder
+    # and renamed, so absolute or out-relative paths named a folder that no longer exists
+    env_files = {e.name: {k: Path(v).relative_to(truth).as_posix() for k, v in e.save(truth / "envmaps").items()}
+                 for e in (office, sunset)}
     lt_env = scenes["env"].lighting
     box = {"min_m": [-plane.side_m / 2, -plane.side_m / 2, 0.0], "max_m": [plane.side_m / 2, plane.side_m / 2, 0.30]}
     markers = {
