@@ -1600,7 +1600,8 @@ class ScanRunner:
                 self._publish_rgb_running(rgb, used)
         # the running estimate at the sweep's last frame too, so that the report's convergence plot
         # reaches the end of the pass (the doubling schedule stopped the demo's at 160 of 200 frames)
-        if live and used and (self._snap.history.get("rho_s") or [(None,)])[-1][0] != used:
+        last = self._snap.history.get("rho_s")
+        if live and used and not (last and last[-1][0] == used):
             self._publish_rgb_running(rgb, used)
         if used == 0:
             raise PassMissingError("the RGB pass has no usable frames (no RGB with depth, tracking lost, or "
