@@ -626,6 +626,15 @@ class RGBPass:
     se_block_m : float
         Side (m) of the blocks of points whose slope terms :meth:`rho_s_standard_error` takes as
         independent (default 4 mm: a few pixels on the object at 1 m; docs/rgb-pass.md §5i).
+    s_replicate : int
+        With the near field on, the support plane's ``dS`` is a Monte Carlo estimate, and its noise
+        in the regressor S of Eq. 5 dilutes the pooled slope (errors in variables: ``rho_s`` times
+        ``var S_true / (var S_true + var noise)``, within points). A second, independent estimate
+        ``S_b`` with this many lobe samples is kept per sample (two more sums per point and channel,
+        ``sum S_b`` and ``sum S S_b``), and rho_s's denominator is the within-point covariance of the
+        two estimates, whose noises are independent: an instrumental variable, unbiased for any
+        sample count (:meth:`_lsq`; docs/rgb-pass.md §5k). 0: the plain slope. Ignored without the
+        near field (S is then exact).
     """
 
     #: lobe samples of the support plane's dS for a GGX lobe, at least (:meth:`near_field_dS`)
@@ -642,7 +651,7 @@ class RGBPass:
                  diffuse_tau: float | None = 0.25, near_field_samples: int = 4, compare_alphas=None,
                  compare_lobes=None, rgb_sampling: str = "nearest",
                  map_blur_var: float = 0.0, clip_correction: bool = True, clip_pool_k: int = 32,
-                 se_block_m: float = 0.004):
+                 se_block_m: float = 0.004, s_replicate: int = 4):
         P, N = check_oriented_points(positions, normals, "RGBPass")
         lab = np.asarray(labels)
         if lab.shape != (len(P),) or not np.issubdtype(lab.dtype, np.integer):
@@ -719,6 +728,10 @@ class RGBPass:
         # circles from each point instead of from the mirror ball
         self.near_field = near_field
         self.near_field_samples = int(near_field_samples)
+        if not (isinstance(s_replicate, (int, np.integer)) and 0 <= int(s_replicate) <= 256):
+            raise AppFusionError(f"RGBPass: s_replicate must be an integer in [0, 256] (lobe samples of the "
+                                 f"second dS estimate; 0: none), got {s_replicate!r}")
+        self.s_replicate = int(s_replicate)
         if near_field is not None:
             t1 = time.perf_counter()
             self.D = np.maximum(self.D + near_field.delta_D(P, N), 0.0).astype(np.float32)
@@ -773,6 +786,13 @@ class RGBPass:
             raise AppFusionError(f"RGBPass: diffuse_tau must be > 0 or None, got {diffuse_tau}")
         self.diffuse_tau = None if diffuse_tau is None else float(diffuse_tau)
         self.sum_w = np.zeros(n)
+        # the instrumental variable of rho_s (s_replicate): sum S_b and sum S S_b per point and channel,
+        # S_b a second estimate of S whose Monte Carlo noise is independent of S's; rep_ok: the point's
+        # S sums and these two belong together (reassign_by_model swaps in a compare lobe's S sums,
+        # which have no replicate: such a point's denominator is its V_SS)
+        self._rep = np.zeros((n, 2, 3))
+        self.sum_sb, self.sum_ssb = self._rep[:, 0], self._rep[:, 1]
+        self.rep_ok = np.ones(n, bool)
         # the same S sums with each compare alpha's S (reassign_by_model), for the points whose own
         # lobe differs (the others' own sums are those): (alpha, point, channel); sum w (alpha, point)
         m = len(self.compare_alphas)
@@ -786,7 +806,8 @@ class RGBPass:
     def nbytes(self) -> int:
         """Bytes of the per-point state (histograms and sums), excluding the tables."""
         return int(self.hist.nbytes + self.bin_mean.nbytes + self.counts.nbytes + self.zeros.nbytes + 8 * self.sum_s2.nbytes
-                   + self.sum_w.nbytes + self.D.nbytes + 5 * self.cmp_s.nbytes + self.cmp_w.nbytes)
+                   + self.sum_w.nbytes + self.D.nbytes + 5 * self.cmp_s.nbytes + self.cmp_w.nbytes
+                   + self._rep.nbytes + self.rep_ok.nbytes)
 
     # -- per-frame --------------------------------------------------------------------------
     def add_frame(self, rgb_linear: np.ndarray, depth: np.ndarray, rgb_intrinsics: Intrinsics,
@@ -999,22 +1020,28 @@ class RGBPass:
             p, L, wo, nrm = (x.take(k, axis=0) for x in (p, L, wo, nrm))
         sp = self._spec_point[p]
         seed = self.frames * 7919 + st["samples"]
-        if sp.all():
-            S = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed, self.point_lobe[p])   # (k, 3) float32
+        rep = self.near_field is not None and self.s_replicate > 0
+        if sp.all():                                          # (k, 3) float32 each; Sb None unless rep
+            S, Sb = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed, self.point_lobe[p], replicate=True)
         else:                                                 # diffuse-only clusters: S = 0, no table
             S = np.zeros((len(p), 3), np.float32)
+            Sb = np.zeros((len(p), 3), np.float32) if rep else None
             if sp.any():
                 q = p[sp]
-                S[sp] = self._lobe_S(q, nrm[sp], wo[sp], self.point_alpha[q], seed, self.point_lobe[q])
+                S[sp], Sq = self._lobe_S(q, nrm[sp], wo[sp], self.point_alpha[q], seed, self.point_lobe[q],
+                                         replicate=True)
+                if Sq is not None:
+                    Sb[sp] = Sq
         Sc = self._compare_S(p, nrm, wo, sp, seed=seed + 1)
         if unique:
-            self._accumulate(p, L, S, Sc)
+            self._accumulate(p, L, S, Sc, Sb)
         else:                                                 # repeated points: rounds of distinct ones
             rest = np.arange(len(p))
             while len(rest):
                 _, first = np.unique(p[rest], return_index=True)
                 take = rest[first]
-                self._accumulate(p[take], L[take], S[take], [(m[take], Sm[take]) for m, Sm in Sc])
+                self._accumulate(p[take], L[take], S[take], [(m[take], Sm[take]) for m, Sm in Sc],
+                                 None if Sb is None else Sb[take])
                 rest = np.delete(rest, first)
         st["samples"] += len(p)
         return int(len(p))
@@ -1032,34 +1059,48 @@ class RGBPass:
             return self.tables.S(nrm, wo, alpha_eff)
         return self.tables.S(nrm, wo, alpha_eff, lobe=lobe)
 
-    def _lobe_S(self, p, nrm, wo, alpha, seed: int, lobe="ward") -> np.ndarray:
+    #: added to a sample's seed for its second ``dS`` estimate (:attr:`s_replicate`): a prime far
+    #: beyond any pass's sample count, so that the two estimates never share random numbers
+    REPLICATE_SEED = 15485863
+
+    def _lobe_S(self, p, nrm, wo, alpha, seed: int, lobe="ward", replicate: bool = False):
         """S (k, 3) float32 of samples of internal points ``p`` with normals, views (k, 3), roughness
         ``alpha`` (k,) and lobe names ``lobe`` (str or (k,)): the double product (§5.3), plus the
-        support plane's ``dS`` (clamped at 0) when the near field is on."""
-        S = self.table_S(nrm, wo, self._map_alpha(alpha), lobe)
-        if self.near_field is not None:
-            dS = self.near_field_dS(self.positions.take(p, axis=0), nrm, wo, alpha, lobe, seed)
-            S = np.maximum(S + dS, 0.0).astype(np.float32)
-        return S
+        support plane's ``dS`` (clamped at 0) when the near field is on. With ``replicate``: the pair
+        ``(S, S_b)``, ``S_b`` the same with a second, independent ``dS`` of :attr:`s_replicate` lobe
+        samples (the instrumental variable of :meth:`_lsq`), None without the near field or with
+        ``s_replicate = 0``."""
+        T = self.table_S(nrm, wo, self._map_alpha(alpha), lobe)
+        if self.near_field is None:
+            return (T, None) if replicate else T
+        pos = self.positions.take(p, axis=0)
+        S = np.maximum(T + self.near_field_dS(pos, nrm, wo, alpha, lobe, seed), 0.0).astype(np.float32)
+        if not replicate:
+            return S
+        if self.s_replicate <= 0:
+            return S, None
+        dSb = self.near_field_dS(pos, nrm, wo, alpha, lobe, seed + self.REPLICATE_SEED, n_samples=self.s_replicate)
+        return S, np.maximum(T + dSb, 0.0).astype(np.float32)
 
-    def near_field_dS(self, pos, nrm, wo, alpha, lobe, seed: int) -> np.ndarray:
+    def near_field_dS(self, pos, nrm, wo, alpha, lobe, seed: int, n_samples: int | None = None) -> np.ndarray:
         """The support plane's ``dS`` (k, 3) (:meth:`appfusion.near_field.SupportPlaneLight.delta_S`) with
         ``near_field_samples`` lobe samples, and at least :attr:`NEAR_FIELD_GGX_MIN_SAMPLES` for GGX
         lobes: a GGX tail sees far more of the plane than a Ward lobe of the same alpha, and with 4
         samples its ``dS`` scattered by twice its size (Ward: half), which the regression of L on S
         reads as a weaker lobe -- the ggx-sphere's underside (normals towards the paper) split off as
-        "less specular" (labels 0.87); with 16, none did (session 36)."""
+        "less specular" (labels 0.87); with 16, none did (session 36). ``n_samples``: instead of
+        ``near_field_samples`` (the second estimate of :attr:`s_replicate`)."""
+        ns = self.near_field_samples if n_samples is None else int(n_samples)
         if _ward_only(lobe):
-            return self.near_field.delta_S(pos, nrm, wo, alpha, n_samples=self.near_field_samples, seed=seed)
+            return self.near_field.delta_S(pos, nrm, wo, alpha, n_samples=ns, seed=seed)
         lb = np.broadcast_to(np.asarray(lobe), (len(pos),))
         g = lb == "ggx"
         al = np.broadcast_to(np.asarray(alpha, np.float64), (len(pos),))
         out = np.zeros((len(pos), 3))
         if (~g).any():
-            out[~g] = self.near_field.delta_S(pos[~g], nrm[~g], wo[~g], al[~g], n_samples=self.near_field_samples,
-                                              seed=seed)
+            out[~g] = self.near_field.delta_S(pos[~g], nrm[~g], wo[~g], al[~g], n_samples=ns, seed=seed)
         out[g] = self.near_field.delta_S(pos[g], nrm[g], wo[g], al[g], seed=seed + 1, lobe="ggx",
-                                         n_samples=max(self.near_field_samples, self.NEAR_FIELD_GGX_MIN_SAMPLES))
+                                         n_samples=max(ns, self.NEAR_FIELD_GGX_MIN_SAMPLES))
         return out
 
     def _compare_S(self, p, nrm, wo, sp, seed: int) -> list:
@@ -1089,9 +1130,11 @@ class RGBPass:
         x += 1.0
         return np.divide(1.0, x, out=x)
 
-    def _accumulate(self, p: np.ndarray, L: np.ndarray, S: np.ndarray, Sc: list = ()) -> None:
+    def _accumulate(self, p: np.ndarray, L: np.ndarray, S: np.ndarray, Sc: list = (),
+                    Sb: np.ndarray | None = None) -> None:
         """Histogram, bin-mean and Eq. 8 sum updates for distinct internal points ``p``; ``Sc`` as
-        :meth:`_compare_S` returns it, for the same samples."""
+        :meth:`_compare_S` returns it, for the same samples; ``Sb`` (k, 3): the second estimate of S
+        (:attr:`s_replicate`), or None."""
         Dp = self.D.take(p, axis=0)
         # rho_d histograms: log(L / D) per channel into the point's bins, plus the running mean of the
         # samples' position inside their bin (uint8, stochastic rounding keeps it unbiased)
@@ -1133,6 +1176,12 @@ class RGBPass:
             self._sums[p] = u
         else:
             self._sums[p, :6] += u
+        if Sb is not None:
+            r = np.empty((len(p), 2, 3))
+            r[:, 0] = Sb
+            np.multiply(S, Sb, out=r[:, 1])
+            r += self._rep.take(p, axis=0)
+            self._rep[p] = r
         for m, (need, Sm) in enumerate(Sc):
             q, Lq, Sq = p[need], L[need], Sm[need]
             self.cmp_s[m, q] += Sq
@@ -1201,6 +1250,13 @@ class RGBPass:
         their percentile rho_d and enter neither sum. The slope pools only a cluster's interior points
         (:meth:`_interior`): on the demo the label's points within 5 mm of the paint raised its slope
         from 0.027 to 0.041 (truth 0.03), the paint's did not move.
+
+        With the near field's Monte Carlo ``dS`` in S, the denominator is the within-point
+        covariance of S with its second estimate ``S_b`` (:attr:`s_replicate`), ``sum S S_b - sum S
+        sum S_b / n``, instead of ``V_SS``: the noise of S inflates ``V_SS`` by its own variance and
+        so dilutes the slope, but not the covariance of two independent estimates
+        (:meth:`_iv_denominator`). The model ladder scores the plain slope (the best predictor of L
+        from the noisy S), and rho_d uses the instrumental rho_s.
         """
         C = self.n_clusters
         lab = self.labels
@@ -1208,7 +1264,10 @@ class RGBPass:
         inner = self._interior(use)
         li = lab[inner]
         num = np.stack([np.bincount(li, weights=cov[inner, c], minlength=C) for c in range(3)], axis=1)
-        den = np.stack([np.bincount(li, weights=var[inner, c], minlength=C) for c in range(3)], axis=1)
+        den_ls = np.stack([np.bincount(li, weights=var[inner, c], minlength=C) for c in range(3)], axis=1)
+        var_iv = self._replicate_moment(use, nn, var)
+        den = self._iv_denominator(den_ls, np.stack([np.bincount(li, weights=var_iv[inner, c], minlength=C)
+                                                     for c in range(3)], axis=1))
         scale = np.maximum(den.max(), 1e-300)
         ok = den > 1e-12 * scale
         rho_s = np.maximum(np.where(ok, num / np.where(ok, den, 1.0), 0.0), 0.0)
@@ -1251,7 +1310,7 @@ class RGBPass:
         self.heldout_rss = rss
         self.heldout_z = z
         self.rho_s_ward = rho_s
-        self.rho_s_sigma = self.rho_s_standard_error(inner, cov, var, num, den)
+        self.rho_s_sigma = self.rho_s_standard_error(inner, cov, var_iv, num, den)
         rho_s = np.where(np.array([m != "diffuse" for m in self.model])[:, None], rho_s, 0.0)
         D = np.maximum(self.D.astype(np.float64), 1e-12)
         rd = (self.sum_l - rho_s[lab] * self.sum_s) / nn / D
@@ -1267,6 +1326,30 @@ class RGBPass:
             rd = rd * self._clip_factor()
         rd = np.where(use[:, None], np.maximum(rd, 0.0), rd_pct)
         return rd, rho_s, den
+
+    def _replicate_moment(self, use: np.ndarray, nn: np.ndarray, var: np.ndarray) -> np.ndarray:
+        """Per point and channel, the within-point covariance of S and its second estimate,
+        ``V_SSb = sum S S_b - sum S sum S_b / n`` (not clamped: its sum over points is what counts),
+        where the point has the replicate sums (:attr:`rep_ok`) and there are any; ``V_SS`` (``var``)
+        elsewhere, and 0 where the point is not used."""
+        if self.near_field is None or self.s_replicate <= 0:
+            return var
+        v_ab = self.sum_ssb - self.sum_s * self.sum_sb / nn
+        return np.where(use[:, None] & self.rep_ok[:, None], v_ab, var)
+
+    #: the instrumental denominator is kept within [IV_MIN_RATIO, 1] times the plain one: a cluster
+    #: whose S varies within its points by less than its Monte Carlo noise (a diffuse-looking lobe,
+    #: few samples) cannot be corrected by more than 1 / IV_MIN_RATIO, and the correction never
+    #: lowers the slope (the covariance of two independent noisy estimates exceeds neither's variance
+    #: but by chance)
+    IV_MIN_RATIO = 0.25
+
+    def _iv_denominator(self, den_ls: np.ndarray, den_iv: np.ndarray) -> np.ndarray:
+        """rho_s's denominator (C, 3): the summed ``V_SSb`` (:meth:`_replicate_moment`) clipped to
+        ``[IV_MIN_RATIO, 1]`` times the summed ``V_SS``."""
+        if self.near_field is None or self.s_replicate <= 0:
+            return den_ls
+        return np.clip(den_iv, self.IV_MIN_RATIO * den_ls, den_ls)
 
     def rho_s_standard_error(self, inner: np.ndarray, cov: np.ndarray, var: np.ndarray, num: np.ndarray,
                              den: np.ndarray) -> np.ndarray:
@@ -1546,6 +1629,7 @@ class RGBPass:
             self.sum_s[q], self.sum_s2[q], self.sum_sl[q] = self.cmp_s[m, q], self.cmp_s2[m, q], self.cmp_sl[m, q]
             self.sum_sd[q] = self.cmp_s[m, q] * self.D[q]
             self.sum_w[q], self.sum_wl[q], self.sum_ws[q] = self.cmp_w[m, q], self.cmp_wl[m, q], self.cmp_ws[m, q]
+            self.rep_ok[q] = False                            # no replicate of the compare lobe's S
         self.labels = new.astype(np.int64)
         self._spec_point = self.specular[self.labels]
         self.point_alpha = self.alphas[self.labels]
