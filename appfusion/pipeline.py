@@ -165,11 +165,12 @@ class ScanConfig:
         0.025, 0.020 with 4 samples, 0.029, 0.029, 0.024 with 9 and 0.031, 0.032, 0.025 with 16
         (``docs/rgb-pass.md`` §5c). Rounded to a square (k x k).
     rho_s_replicate : int
-        Lobe samples of a second, independent ``dS`` estimate per RGB sample, in every sweep
-        (:attr:`appfusion.rgb_pass.RGBPass.s_replicate`): rho_s's denominator becomes the covariance of
-        the two estimates, which the Monte Carlo noise does not inflate, so the slope is not diluted
-        (the demo's label with 800 colour frames, truth 0.03: 0.025, 0.026, 0.022 without, 0.029, 0.030,
-        0.026 with; ``docs/rgb-pass.md`` §5k). It costs 13-33 % of the RGB stage. 0: the plain slope.
+        Lobe samples of a second, independent ``dS`` estimate per RGB sample in the offline re-sweeps
+        (:attr:`appfusion.rgb_pass.RGBPass.s_replicate`; the live first sweep keeps its update rate, as
+        with ``near_field_final_samples``): rho_s's denominator becomes the covariance of the two
+        estimates, which the Monte Carlo noise does not inflate, so the slope is not diluted (the
+        demo's label with 800 colour frames, truth 0.03: 0.025, 0.026, 0.022 without, 0.029, 0.030,
+        0.026 with; ``docs/rgb-pass.md`` §5k). It costs ~15 % of a re-sweep. 0: the plain slope.
     map_blur_correction : bool
         Read S against the captured map at each lobe's effective roughness
         (:func:`appfusion.envmap.effective_alpha`, with the map's own blur ``blur_var_rad2``): a sharp
@@ -1671,7 +1672,8 @@ class ScanRunner:
             compare, compare_lobes = _compare_lobes(first.model, lobes, alpha, specular)
         rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables, lobes=lobes,
                       near_field=first.near_field, near_field_samples=int(self.config.near_field_final_samples),
-                      compare_alphas=compare, compare_lobes=compare_lobes, **self._rgb_kwargs())
+                      s_replicate=int(self.config.rho_s_replicate), compare_alphas=compare,
+                      compare_lobes=compare_lobes, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
         self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
         self.timings["rgb-resweep" if reassign else "rgb-third-sweep"] = self.timings.pop("rgb", {})
@@ -1824,8 +1826,7 @@ class ScanRunner:
         return {"percentile": self.config.rho_d_percentile, "bins": self.config.rho_d_bins, "saturated": np.inf,
                 "estimator": self.config.rho_d_estimator, "diffuse_tau": self.config.diffuse_tau,
                 "rgb_sampling": self.config.rgb_sampling, "clip_correction": bool(self.config.rho_d_clip_correction),
-                "map_blur_var": blur if self.config.map_blur_correction else 0.0,
-                "s_replicate": int(self.config.rho_s_replicate)}
+                "map_blur_var": blur if self.config.map_blur_correction else 0.0}
 
     def _near_field(self):
         """The support plane as near-field light for the RGB pass (:mod:`appfusion.near_field`), or None

@@ -633,8 +633,11 @@ class RGBPass:
         ``S_b`` with this many lobe samples is kept per sample (two more sums per point and channel,
         ``sum S_b`` and ``sum S S_b``), and rho_s's denominator is the within-point covariance of the
         two estimates, whose noises are independent: an instrumental variable, unbiased for any
-        sample count (:meth:`_lsq`; docs/rgb-pass.md §5k). 0: the plain slope. Ignored without the
-        near field (S is then exact).
+        sample count (:meth:`_lsq`; docs/rgb-pass.md §5k). 0 (default): the plain slope. Ignored
+        without the near field (S is then exact). It costs a second ``dS`` per sample: a scan asks
+        for it in its offline re-sweeps only (``ScanConfig.rho_s_replicate``), where the update
+        rate does not matter (with it the live sweep's near-field update rate fell from ~30 to 19
+        frames/s).
     """
 
     #: lobe samples of the support plane's dS for a GGX lobe, at least (:meth:`near_field_dS`)
@@ -651,7 +654,7 @@ class RGBPass:
                  diffuse_tau: float | None = 0.25, near_field_samples: int = 4, compare_alphas=None,
                  compare_lobes=None, rgb_sampling: str = "nearest",
                  map_blur_var: float = 0.0, clip_correction: bool = True, clip_pool_k: int = 32,
-                 se_block_m: float = 0.004, s_replicate: int = 4):
+                 se_block_m: float = 0.004, s_replicate: int = 0):
         P, N = check_oriented_points(positions, normals, "RGBPass")
         lab = np.asarray(labels)
         if lab.shape != (len(P),) or not np.issubdtype(lab.dtype, np.integer):
