@@ -1023,17 +1023,17 @@ class RGBPass:
             p, L, wo, nrm = (x.take(k, axis=0) for x in (p, L, wo, nrm))
         sp = self._spec_point[p]
         seed = self.frames * 7919 + st["samples"]
-        rep = self.near_field is not None and self.s_replicate > 0
+        rep = self.replicating
         if sp.all():                                          # (k, 3) float32 each; Sb None unless rep
-            S, Sb = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed, self.point_lobe[p], replicate=True)
+            S, Sb = self._lobe_S(p, nrm, wo, self.point_alpha[p], seed, self.point_lobe[p], replicate=rep)
         else:                                                 # diffuse-only clusters: S = 0, no table
             S = np.zeros((len(p), 3), np.float32)
             Sb = np.zeros((len(p), 3), np.float32) if rep else None
             if sp.any():
                 q = p[sp]
                 S[sp], Sq = self._lobe_S(q, nrm[sp], wo[sp], self.point_alpha[q], seed, self.point_lobe[q],
-                                         replicate=True)
-                if Sq is not None:
+                                         replicate=rep)
+                if rep:
                     Sb[sp] = Sq
         Sc = self._compare_S(p, nrm, wo, sp, seed=seed + 1)
         if unique:
@@ -1062,25 +1062,28 @@ class RGBPass:
             return self.tables.S(nrm, wo, alpha_eff)
         return self.tables.S(nrm, wo, alpha_eff, lobe=lobe)
 
+    @property
+    def replicating(self) -> bool:
+        """Samples get a second ``dS`` estimate (:attr:`s_replicate`): only S's near-field part is
+        Monte Carlo, so only with the near field on."""
+        return self.near_field is not None and self.s_replicate > 0
+
     #: added to a sample's seed for its second ``dS`` estimate (:attr:`s_replicate`): a prime far
     #: beyond any pass's sample count, so that the two estimates never share random numbers
     REPLICATE_SEED = 15485863
 
     def _lobe_S(self, p, nrm, wo, alpha, seed: int, lobe="ward", replicate: bool = False):
-        """S (k, 3) float32 of samples of internal points ``p`` with normals, views (k, 3), roughness
-        ``alpha`` (k,) and lobe names ``lobe`` (str or (k,)): the double product (§5.3), plus the
-        support plane's ``dS`` (clamped at 0) when the near field is on. With ``replicate``: the pair
-        ``(S, S_b)``, ``S_b`` the same with a second, independent ``dS`` of :attr:`s_replicate` lobe
-        samples (the instrumental variable of :meth:`_lsq`), None without the near field or with
-        ``s_replicate = 0``."""
+        """``(S, S_b)``: S (k, 3) float32 of samples of internal points ``p`` with normals, views (k, 3),
+        roughness ``alpha`` (k,) and lobe names ``lobe`` (str or (k,)): the double product (§5.3), plus
+        the support plane's ``dS`` (clamped at 0) when the near field is on; ``S_b`` with ``replicate``
+        (only where :attr:`replicating`) the same with a second, independent ``dS`` of
+        :attr:`s_replicate` lobe samples (the instrumental variable of :meth:`_lsq`), else None."""
         T = self.table_S(nrm, wo, self._map_alpha(alpha), lobe)
         if self.near_field is None:
-            return (T, None) if replicate else T
+            return T, None
         pos = self.positions.take(p, axis=0)
         S = np.maximum(T + self.near_field_dS(pos, nrm, wo, alpha, lobe, seed), 0.0).astype(np.float32)
         if not replicate:
-            return S
-        if self.s_replicate <= 0:
             return S, None
         dSb = self.near_field_dS(pos, nrm, wo, alpha, lobe, seed + self.REPLICATE_SEED, n_samples=self.s_replicate)
         return S, np.maximum(T + dSb, 0.0).astype(np.float32)
@@ -1115,7 +1118,7 @@ class RGBPass:
             Sm = np.zeros((len(p), 3), np.float32)
             i = np.flatnonzero(need)
             if len(i):
-                Sm[i] = self._lobe_S(p[i], nrm[i], wo[i], np.full(len(i), a), seed + 104729 * (m + 1), lobe=str(lb))
+                Sm[i] = self._lobe_S(p[i], nrm[i], wo[i], np.full(len(i), a), seed + 104729 * (m + 1), lobe=str(lb))[0]
             out.append((need, Sm))
         return out
 
@@ -1258,7 +1261,7 @@ class RGBPass:
         covariance of S with its second estimate ``S_b`` (:attr:`s_replicate`), ``sum S S_b - sum S
         sum S_b / n``, instead of ``V_SS``: the noise of S inflates ``V_SS`` by its own variance and
         so dilutes the slope, but not the covariance of two independent estimates
-        (:meth:`_iv_denominator`). The model ladder scores the plain slope (the best predictor of L
+        (:meth:`_replicate_moment`, :attr:`IV_MIN_RATIO`). The model ladder scores the plain slope (the best predictor of L
         from the noisy S), and rho_d uses the instrumental rho_s.
         """
         C = self.n_clusters
@@ -1267,10 +1270,13 @@ class RGBPass:
         inner = self._interior(use)
         li = lab[inner]
         num = np.stack([np.bincount(li, weights=cov[inner, c], minlength=C) for c in range(3)], axis=1)
-        den_ls = np.stack([np.bincount(li, weights=var[inner, c], minlength=C) for c in range(3)], axis=1)
-        var_iv = self._replicate_moment(use, nn, var)
-        den = self._iv_denominator(den_ls, np.stack([np.bincount(li, weights=var_iv[inner, c], minlength=C)
-                                                     for c in range(3)], axis=1))
+        den = np.stack([np.bincount(li, weights=var[inner, c], minlength=C) for c in range(3)], axis=1)
+        var_iv = var
+        if self.replicating:
+            # the summed V_SSb, kept within [IV_MIN_RATIO, 1] times the plain denominator
+            var_iv = self._replicate_moment(use, nn, var)
+            den_iv = np.stack([np.bincount(li, weights=var_iv[inner, c], minlength=C) for c in range(3)], axis=1)
+            den = np.clip(den_iv, self.IV_MIN_RATIO * den, den)
         scale = np.maximum(den.max(), 1e-300)
         ok = den > 1e-12 * scale
         rho_s = np.maximum(np.where(ok, num / np.where(ok, den, 1.0), 0.0), 0.0)
@@ -1333,10 +1339,8 @@ class RGBPass:
     def _replicate_moment(self, use: np.ndarray, nn: np.ndarray, var: np.ndarray) -> np.ndarray:
         """Per point and channel, the within-point covariance of S and its second estimate,
         ``V_SSb = sum S S_b - sum S sum S_b / n`` (not clamped: its sum over points is what counts),
-        where the point has the replicate sums (:attr:`rep_ok`) and there are any; ``V_SS`` (``var``)
-        elsewhere, and 0 where the point is not used."""
-        if self.near_field is None or self.s_replicate <= 0:
-            return var
+        where the point has the replicate sums (:attr:`rep_ok`); ``V_SS`` (``var``) elsewhere, and 0
+        where the point is not used. Only while :attr:`replicating`."""
         v_ab = self.sum_ssb - self.sum_s * self.sum_sb / nn
         return np.where(use[:, None] & self.rep_ok[:, None], v_ab, var)
 
@@ -1346,13 +1350,6 @@ class RGBPass:
     #: lowers the slope (the covariance of two independent noisy estimates exceeds neither's variance
     #: but by chance)
     IV_MIN_RATIO = 0.25
-
-    def _iv_denominator(self, den_ls: np.ndarray, den_iv: np.ndarray) -> np.ndarray:
-        """rho_s's denominator (C, 3): the summed ``V_SSb`` (:meth:`_replicate_moment`) clipped to
-        ``[IV_MIN_RATIO, 1]`` times the summed ``V_SS``."""
-        if self.near_field is None or self.s_replicate <= 0:
-            return den_ls
-        return np.clip(den_iv, self.IV_MIN_RATIO * den_ls, den_ls)
 
     def rho_s_standard_error(self, inner: np.ndarray, cov: np.ndarray, var: np.ndarray, num: np.ndarray,
                              den: np.ndarray) -> np.ndarray:

@@ -653,7 +653,7 @@ def test_map_blur_var_reads_S_at_the_effective_roughness(sphere_run):
     C = poses[0][:3, 3]
     wo = C - rp.positions[p]
     wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    S = rp._lobe_S(p, rp.normals[p], wo, rp.point_alpha[p], seed=0)
+    S, _ = rp._lobe_S(p, rp.normals[p], wo, rp.point_alpha[p], seed=0)
     S_eff = rp0.tables.S(rp.normals[p], wo, eff[rp.labels[p]])
     np.testing.assert_allclose(S, S_eff, rtol=1e-6)
     assert not np.allclose(S, rp0.tables.S(rp.normals[p], wo, rp.point_alpha[p]), rtol=1e-3)
