@@ -171,6 +171,12 @@ class ScanConfig:
         estimates, which the Monte Carlo noise does not inflate, so the slope is not diluted (the
         demo's label with 800 colour frames, truth 0.03: 0.025, 0.026, 0.022 without, 0.029, 0.030,
         0.026 with; ``docs/rgb-pass.md`` §5k). It costs ~15 % of a re-sweep. 0: the plain slope.
+    rho_s_footprint : bool
+        Model the pixel footprint's blur of the print in rho_s's regression in the offline re-sweeps
+        (:attr:`appfusion.rgb_pass.RGBPass.footprint`): a sample averages the albedo over its pixel's
+        footprint, which changes with the view, and on a printed label that change goes with S (the
+        demo label's darkest quarter read -0.06, its brightest +0.09, for 0.03). The blur's constant is
+        fitted with rho_s; it costs ~7 % of a re-sweep and 216 bytes a point (``docs/rgb-pass.md`` §5l).
     map_blur_correction : bool
         Read S against the captured map at each lobe's effective roughness
         (:func:`appfusion.envmap.effective_alpha`, with the map's own blur ``blur_var_rad2``): a sharp
@@ -324,6 +330,7 @@ class ScanConfig:
     near_field: bool = True
     near_field_final_samples: int = 16
     rho_s_replicate: int = 4
+    rho_s_footprint: bool = True
     map_blur_correction: bool = True
     diffuse_tau: float | None = 0.25
     rgb_sampling: str = "nearest"
@@ -388,9 +395,9 @@ STAGE_CONFIG = {
     "ir": ("hbsab_n", "k_clusters", "ir_rim_m", "ir_lobes", "ir_interior_m", "refine_poses"),
     "rgb": ("rho_d_percentile", "rho_d_bins", "rho_d_estimator", "rho_d_pool_k", "rho_d_pool_z",
             "rho_d_clip_correction", "rgb_split", "rgb_colour_regions", "rgb_resweep", "near_field",
-            "near_field_final_samples", "rho_s_replicate", "map_blur_correction", "diffuse_tau", "rgb_sampling",
-            "normal_refine_rounds", "normal_refine_jet_residual", "normal_refine_deg", "normal_refine_screen",
-            "normal_refine_min_gain"),
+            "near_field_final_samples", "rho_s_replicate", "rho_s_footprint", "map_blur_correction", "diffuse_tau",
+            "rgb_sampling", "normal_refine_rounds", "normal_refine_jet_residual", "normal_refine_deg",
+            "normal_refine_screen", "normal_refine_min_gain"),
 }
 #: Fields no checkpoint depends on: the export's texture size and the GUI's snapshot rate.
 UNKEYED_CONFIG = ("texture_size", "snapshot_interval_s")
@@ -689,6 +696,8 @@ class ScanRunner:
                 and 0 <= int(c.rho_s_replicate) <= 256):
             raise AppFusionError("scan config: rho_s_replicate must be an integer in [0, 256] (lobe samples of the "
                                  f"second dS estimate that keeps rho_s undiluted; 0: none), got {c.rho_s_replicate!r}")
+        if not isinstance(c.rho_s_footprint, (bool, np.bool_)):
+            raise AppFusionError(f"scan config: rho_s_footprint must be True or False, got {c.rho_s_footprint!r}")
         if not isinstance(c.plane_snap, (bool, np.bool_)):
             raise AppFusionError(f"scan config: plane_snap must be True or False, got {c.plane_snap!r}")
         if not isinstance(c.rho_d_clip_correction, (bool, np.bool_)):
@@ -1672,7 +1681,8 @@ class ScanRunner:
             compare, compare_lobes = _compare_lobes(first.model, lobes, alpha, specular)
         rgb = RGBPass(P, N, labels, alpha, self.env.radiance, specular=specular, tables=first.tables, lobes=lobes,
                       near_field=first.near_field, near_field_samples=int(self.config.near_field_final_samples),
-                      s_replicate=int(self.config.rho_s_replicate), compare_alphas=compare,
+                      s_replicate=int(self.config.rho_s_replicate), footprint=bool(self.config.rho_s_footprint),
+                      compare_alphas=compare,
                       compare_lobes=compare_lobes, **self._rgb_kwargs())
         t_first = self.timings.get("rgb")
         self._rgb_sweep(rgb, start, stop, pass_name, live=False, calibrated=getattr(self, "_rgb_calibration", None))
@@ -1687,7 +1697,13 @@ class ScanRunner:
         if compare is not None and len(compare):
             moved = rgb.reassign_by_model(colour_regions_on=self.config.rgb_colour_regions)
             self._note(f"rgb: {moved} points moved to the cluster whose colour model fits their neighbourhood best")
-        return rgb.result(), rgb.labels_caller_order()
+        res = rgb.result()
+        if rgb.footprint_c is not None:
+            # the fitted blur as a length: the footprint's standard deviation per axis at 1 m
+            self._note(f"rgb: the pixel footprint's blur of the print, fitted with rho_s: {1e3 * rgb.footprint_c ** 0.5:.2f} mm "
+                       "at 1 m (its standard deviation); rho_s without it " + "; ".join(
+                           ", ".join(f"{v:.3f}" for v in row) for row in rgb.rho_s_unblurred))
+        return res, rgb.labels_caller_order()
 
     def _refit_ir_final(self, labels: np.ndarray, alpha: np.ndarray, sigma: np.ndarray,
                         model, lobes) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:

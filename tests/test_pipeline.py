@@ -112,7 +112,9 @@ def test_refuse_rounds_are_run_and_below_one_refused_before_anything_runs(kinect
             _run(kinect_sphere, tmp_path / "samples", near_field_final_samples=bad)
     assert not (tmp_path / "samples" / "state").exists()
     for name, bad in (("rho_d_pool_k", -1), ("rho_d_pool_k", 3.5), ("rho_d_pool_z", 0), ("rho_d_pool_z", float("nan")),
-                      ("rho_d_clip_correction", "yes"), ("rho_d_clip_correction", 1), ("plane_snap", "no")):
+                      ("rho_d_clip_correction", "yes"), ("rho_d_clip_correction", 1), ("plane_snap", "no"),
+                      ("rho_s_replicate", -1), ("rho_s_replicate", True), ("rho_s_footprint", "yes"),
+                      ("rho_s_footprint", 1)):
         with pytest.raises(AppFusionError, match=name):
             _run(kinect_sphere, tmp_path / "pool", **{name: bad})
     assert not (tmp_path / "pool" / "state").exists()
@@ -249,11 +251,18 @@ def test_second_rgb_sweep_solves_with_the_lobes_it_is_given(kinect_sphere, tmp_p
         labels = first.labels_caller_order()
         alphas = np.asarray(first.alphas, np.float64)
         res0 = first.result()
+        # the re-sweeps add the footprint's term to rho_s's regression (docs/rgb-pass.md §5l), which
+        # the live sweep leaves out: without it the same sums give the same rho_s
+        r.config.rho_s_footprint = False
         res1, lab1 = r._rgb_resweep(labels, alphas, np.zeros(len(alphas), bool), a, b, "rgb")
         np.testing.assert_array_equal(lab1, labels)
         np.testing.assert_array_equal(r.rgb.counts, first.counts)
         np.testing.assert_allclose(r.rgb.sum_s2, first.sum_s2, rtol=1e-6, atol=1e-12)
         np.testing.assert_allclose(res1.rho_s, res0.rho_s, rtol=1e-5, atol=1e-7)
+        r.config.rho_s_footprint = True
+        res1, _ = r._rgb_resweep(labels, alphas, np.zeros(len(alphas), bool), a, b, "rgb")
+        assert r.rgb.footprint_c is not None and r.rgb.footprint_c >= 0
+        np.testing.assert_allclose(res1.rho_s, res0.rho_s, rtol=0.01)          # a small correction here
         assert "rgb-resweep" in r.timings and "rgb" in r.timings
         # another alpha for the one cluster: other S, other rho_s
         sharp = r.rgb
