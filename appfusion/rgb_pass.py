@@ -1315,12 +1315,16 @@ class RGBPass:
         """Within-point moments of the footprint's regressor ``G = D (h11 X11 + 2 h12 X12 + h22 X22) / 2``
         per point and channel (:attr:`footprint`): ``C_GS``, ``C_GL`` and ``V_GG`` (n, 3), 0 where the
         point is not used or its S sums are a compare lobe's (:attr:`own_s`). ``H`` is fitted to the
-        points' rho_d ``(mean L - rho_s mean S) / D`` with ``rho_s`` (C, 3) (the plain slope)."""
+        points' rho_d ``(mean L - rho_s mean S) / D`` with ``rho_s`` (C, 3) (the plain slope); a
+        neighbour with too few samples counts with the point's own rho_d."""
         proj, nb = self._footprint_projector()
         D = np.maximum(self.D.astype(np.float64), 1e-12)
         rd = (self.sum_l - np.maximum(rho_s, 0.0)[self.labels] * self.sum_s) / nn / D
         rd = np.where(use[:, None], rd, 0.0)
-        hv = np.einsum("pjk,pkc->pjc", proj, rd[nb]) * D[:, None, :]            # (n, 3 terms, 3 channels)
+        # a neighbour without samples (not seen, or too few) takes the point's own rho_d: no
+        # curvature is made up where nothing was measured
+        rn = np.where(use[nb][:, :, None], rd[nb], rd[:, None, :])
+        hv = np.einsum("pjk,pkc->pjc", proj, rn) * D[:, None, :]                 # (n, 3 terms, 3 channels)
         f = self._fp
         x = f[:, 0:3]
         xx = np.empty((len(f), 3, 3))
@@ -1484,8 +1488,8 @@ class RGBPass:
         C_GL`` (``den`` the slope's denominator, the instrumental one where :attr:`replicating`: G
         carries no Monte Carlo noise); eliminating rho_s, ``c = (sum C_GL - sum b num / den) / (sum
         V_GG - sum b^2 / den)``, kept >= 0 (a footprint only averages). One ``c`` for all clusters:
-        fitted per cluster, the demo's paint read 0.48 mm at 1 m and its label 0.56 (0.55 together);
-        on the test's sinusoidal print per-cluster values left the crests 16 % high, one value 12 %.
+        fitted per cluster, the demo's paint read 0.48 mm at 1 m and its label 0.56 (0.55 together),
+        and a cluster with little curved print (a plain paint) has little to fit it with.
         Returns the points' slope covariances and the clusters' numerators with ``c G`` taken out;
         sets :attr:`footprint_c` (float) and :attr:`rho_s_unblurred` (the slope without the term)."""
         C = self.n_clusters

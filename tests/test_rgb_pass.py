@@ -367,7 +367,7 @@ def test_the_footprint_term_takes_the_prints_blur_out_of_the_slope():
     printed with a sinusoid in z, each sample the print blurred by a Gaussian of the footprint's
     covariance ``kappa Sigma`` along z (exact, not the second-order model), plus ``0.03 S``; troughs,
     crests and the rest as three clusters of one material. The plain slope reads the troughs and
-    crests 0.02 and 0.05; with the footprint term (``c`` fitted, one for all) both are within 12 %."""
+    crests 0.022 and 0.049; with the footprint term (``c`` fitted, one for all) 0.029 and 0.031."""
     from appfusion.bench.stages.rgb import facing_points
     from appfusion.rgb_pass import _tangent_frame
     from appfusion.rgb_synth import orbit_poses, two_material_sphere
@@ -408,8 +408,8 @@ def test_the_footprint_term_takes_the_prints_blur_out_of_the_slope():
     assert c0 is None and (trough < 0.8 * 0.03).all() and (crest > 1.3 * 0.03).all()      # the test can fail
     (trough, crest), c = fit(True)
     print(f"footprint: troughs {trough}, crests {crest}, c {c} (truth {kappa})")
-    np.testing.assert_allclose(np.r_[trough, crest], 0.03, rtol=0.12)
-    assert 0.6 * kappa < c < 1.2 * kappa
+    np.testing.assert_allclose(np.r_[trough, crest], 0.03, rtol=0.06)
+    assert 0.7 * kappa < c < 1.2 * kappa
 
 
 def test_diffuse_clusters_skip_their_tables(sphere_run):
