@@ -1277,12 +1277,12 @@ class RGBPass:
     #: nearest points (the point itself included) whose rho_d the footprint's curvature is fitted to
     FOOTPRINT_NEIGHBOURS = 24
 
-    def _footprint_projector(self) -> np.ndarray:
+    def _footprint_projector(self) -> tuple[np.ndarray, np.ndarray]:
         """Per point, the linear map (3, k) from its k nearest points' rho_d to half its Hessian terms
         ``(h11 / 2, h12, h22 / 2)`` in its tangent frame: the least-squares quadric ``a + b x + c y + (h11
         x^2 + 2 h12 x y + h22 y^2) / 2`` over the neighbours of its own cluster (coordinates along t1,
         t2 scaled by the neighbourhood's radius); zero where fewer than 10 of them share its cluster.
-        Also returns the neighbours (n, k). Cached per labelling."""
+        Returns it (n, 3, k) and the neighbours (n, k). Cached per labelling."""
         key = hashlib.blake2b(self.labels.tobytes(), digest_size=16).digest()
         if self._fp_proj is not None and self._fp_proj[0] == key:
             return self._fp_proj[1], self._fp_proj[2]
