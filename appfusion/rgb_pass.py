@@ -73,6 +73,7 @@ from .double_product import DoubleProductTables
 from .envmap import effective_alpha
 from .errors import AppFusionError
 from .frame import Intrinsics, invert_pose
+from .normal_refine import tangent_frames
 from .points import check_oriented_points, interior_mask, interior_or_all
 
 __all__ = ["RGBPass", "RGBResult", "histogram_percentile"]
@@ -522,20 +523,6 @@ _FP_I = np.array([0, 0, 0, 1, 1, 2])
 _FP_J = np.array([0, 1, 2, 1, 2, 2])
 
 
-def _tangent_frame(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A fixed tangent frame (t1, t2), (N, 3) float32 each, of unit normals (N, 3): t1 the surface's
-    direction of steepest ascent in z (the up axis projected onto the tangent plane), or x where the
-    normal is vertical; t2 = n x t1."""
-    n = np.asarray(normals, np.float64)
-    t1 = np.array([0.0, 0.0, 1.0]) - n[:, 2:3] * n
-    ln = np.linalg.norm(t1, axis=1, keepdims=True)
-    alt = np.array([1.0, 0.0, 0.0]) - n[:, 0:1] * n
-    t1 = np.where(ln > 1e-3, t1, alt)
-    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
-    t2 = np.cross(n, t1)
-    return t1.astype(np.float32), t2.astype(np.float32)
-
-
 def _ward_only(lobe) -> bool:
     """True when ``lobe`` (a name or an array of names) names only Ward lobes."""
     return lobe == "ward" if isinstance(lobe, str) else bool((np.asarray(lobe) == "ward").all())
@@ -843,7 +830,7 @@ class RGBPass:
         self._fp_proj = None
         if self.footprint:
             self._fp = np.zeros((n, 27))
-            self._fp_t1, self._fp_t2 = _tangent_frame(self.normals)
+            self._fp_t1, self._fp_t2 = (t.astype(np.float32) for t in tangent_frames(self.normals))
         else:
             self._fp = np.zeros((0, 27))
         # the same S sums with each compare alpha's S (reassign_by_model), for the points whose own
@@ -1282,15 +1269,17 @@ class RGBPass:
         ``(h11 / 2, h12, h22 / 2)`` in its tangent frame: the least-squares quadric ``a + b x + c y + (h11
         x^2 + 2 h12 x y + h22 y^2) / 2`` over the neighbours of its own cluster (coordinates along t1,
         t2 scaled by the neighbourhood's radius); zero where fewer than 10 of them share its cluster.
-        Returns it (n, 3, k) and the neighbours (n, k). Cached per labelling."""
-        key = hashlib.blake2b(self.labels.tobytes(), digest_size=16).digest()
+        Returns it (n, 3, k) and the neighbours (n, k). The map is cached per labelling, the
+        neighbours (which do not depend on it) once."""
+        key = self._labels_key()
         if self._fp_proj is not None and self._fp_proj[0] == key:
             return self._fp_proj[1], self._fp_proj[2]
         P = self.positions.astype(np.float64)
         n = len(P)
         k = min(self.FOOTPRINT_NEIGHBOURS, n)
-        _, nb = cKDTree(P).query(P, k=k)
-        nb = np.asarray(nb, np.int64).reshape(n, k)
+        nb = self._fp_proj[2] if self._fp_proj is not None else None       # positions only: kept
+        if nb is None:
+            nb = np.asarray(cKDTree(P).query(P, k=k)[1], np.int64).reshape(n, k)
         proj = np.zeros((n, 3, k), np.float32)
         for lo in range(0, n, 8192):
             sl = slice(lo, min(lo + 8192, n))
@@ -1373,12 +1362,16 @@ class RGBPass:
         v_ll = np.where(u, np.maximum(self.sum_l2 - self.sum_l * self.sum_l / n, 0.0), 0.0)
         return use, n, c_sl, v_ss, v_ll
 
+    def _labels_key(self) -> bytes:
+        """A digest of the current labelling, the key of what is cached per labelling."""
+        return hashlib.blake2b(self.labels.tobytes(), digest_size=16).digest()
+
     def _interior(self, use: np.ndarray) -> np.ndarray:
         """Points that enter rho_s and the model ladder: usable and farther than ``interior_m`` from
         every point of another cluster, per cluster where at least a quarter of its usable points are
         (else all its usable points). Cached per labelling."""
         lab = self.labels
-        key = (hashlib.blake2b(lab.tobytes(), digest_size=16).digest(), self.interior_m)
+        key = (self._labels_key(), self.interior_m)
         if self._interior_key != key:
             self._interior_far, self._interior_key = interior_mask(self.positions, lab, self.interior_m), key
         return interior_or_all(self._interior_far, lab, use)
@@ -1411,7 +1404,7 @@ class RGBPass:
         inner = self._interior(use)
         li = lab[inner]
         num = np.stack([np.bincount(li, weights=cov[inner, c], minlength=C) for c in range(3)], axis=1)
-        den = np.stack([np.bincount(li, weights=var[inner, c], minlength=C) for c in range(3)], axis=1)
+        den = den_plain = np.stack([np.bincount(li, weights=var[inner, c], minlength=C) for c in range(3)], axis=1)
         var_iv = var
         if self.replicating:
             # the summed V_SSb, kept within [IV_MIN_RATIO, 1] times the plain denominator
@@ -1422,7 +1415,7 @@ class RGBPass:
         ok = den > 1e-12 * scale
         cov_s = cov
         if self.footprint and inner.any():
-            cov_s, num = self._footprint_fit(inner, use, nn, cov, var, num, den, ok)
+            cov_s, num = self._footprint_fit(inner, use, nn, cov, num, den, den_plain, ok)
         rho_s = np.maximum(np.where(ok, num / np.where(ok, den, 1.0), 0.0), 0.0)
         # model ladder (issue #11, after seed 002): diffuse only, or diffuse + Ward, per cluster, chosen
         # by held-out error. The points are split in two halves; rho_s fitted on one half is scored on
@@ -1480,7 +1473,7 @@ class RGBPass:
         rd = np.where(use[:, None], np.maximum(rd, 0.0), rd_pct)
         return rd, rho_s, den
 
-    def _footprint_fit(self, inner, use, nn, cov, var, num, den, ok):
+    def _footprint_fit(self, inner, use, nn, cov, num, den, den_plain, ok):
         """rho_s's regression with the pixel footprint's term (:attr:`footprint`): within points,
         ``L = D rho_d + rho_s S + c G``, ``rho_s`` per cluster and channel and ``c`` one constant of
         the camera. Per cluster and channel the normal equations are ``den rho_s + b c = num`` with
@@ -1490,12 +1483,13 @@ class RGBPass:
         V_GG - sum b^2 / den)``, kept >= 0 (a footprint only averages). One ``c`` for all clusters:
         fitted per cluster, the demo's paint read 0.48 mm at 1 m and its label 0.56 (0.55 together),
         and a cluster with little curved print (a plain paint) has little to fit it with.
-        Returns the points' slope covariances and the clusters' numerators with ``c G`` taken out;
+        ``den_plain``: the plain denominator (sum V_SS), whose slope fits the rho_d that ``H`` is read
+        from. Returns the points' slope covariances and the clusters' numerators with ``c G`` taken out;
         sets :attr:`footprint_c` (float) and :attr:`rho_s_unblurred` (the slope without the term)."""
         C = self.n_clusters
         lab = self.labels
-        v0 = np.stack([np.bincount(lab[inner], weights=var[inner, ch], minlength=C) for ch in range(3)], 1)
-        rs0 = np.where(v0 > 0, num / np.where(v0 > 0, v0, 1.0), 0.0)           # the plain slope, for rho_d's H
+        pos = den_plain > 0
+        rs0 = np.where(pos, num / np.where(pos, den_plain, 1.0), 0.0)          # the plain slope, for rho_d's H
         c_gs, c_gl, v_gg = self._footprint_moments(use, nn, rs0)
         li = lab[inner]
         b, y, g = (np.stack([np.bincount(li, weights=m[inner, ch], minlength=C) for ch in range(3)], 1)
@@ -1568,7 +1562,7 @@ class RGBPass:
         where the lobe varies)."""
         if not self.zeros.any():
             return np.ones_like(self.sum_l)
-        key = hashlib.blake2b(self.labels.tobytes(), digest_size=16).digest()
+        key = self._labels_key()
         if self._clip_nbr is None or self._clip_nbr[0] != key:
             k = min(self.clip_pool_k, len(self.positions))
             dist, idx = cKDTree(self.positions).query(self.positions, k=k, distance_upper_bound=0.008)

@@ -369,7 +369,6 @@ def test_the_footprint_term_takes_the_prints_blur_out_of_the_slope():
     crests and the rest as three clusters of one material. The plain slope reads the troughs and
     crests 0.022 and 0.049; with the footprint term (``c`` fitted, one for all) 0.029 and 0.031."""
     from appfusion.bench.stages.rgb import facing_points
-    from appfusion.rgb_pass import _tangent_frame
     from appfusion.rgb_synth import orbit_poses, two_material_sphere
 
     kappa, wavelength = 2.3e-5, 0.04                  # the blur's variance per axis at 1 m (m^2 / m^2)
@@ -380,8 +379,10 @@ def test_the_footprint_term_takes_the_prints_blur_out_of_the_slope():
     lab = np.where(phase < -0.5, 0, np.where(phase > 0.5, 1, 2)).astype(np.int64)
     tab = RGBPass(sc.positions, sc.normals, np.zeros(len(lab), np.int64), [0.35], sc.env, table_kwargs=TABLES).tables
     D0 = tab.D(sc.normals).astype(np.float64)
-    t1, _ = _tangent_frame(sc.normals)
-    dz_dt1 = 1 - sc.normals[:, 2] ** 2                  # (dz / ds)^2 along t1, the steepest ascent in z
+    # t1: the surface's steepest ascent in z, along which the print varies; (dz / ds)^2 along it
+    t1 = np.array([0.0, 0.0, 1.0]) - sc.normals[:, 2:3] * sc.normals
+    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+    dz_dt1 = 1 - sc.normals[:, 2] ** 2
     views = []
     for T in orbit_poses(sc.center, 0.45, 40, seed=1):
         C, wo, vis = facing_points(sc, T)
