@@ -696,12 +696,9 @@ class ScanRunner:
                 and 0 <= int(c.rho_s_replicate) <= 256):
             raise AppFusionError("scan config: rho_s_replicate must be an integer in [0, 256] (lobe samples of the "
                                  f"second dS estimate that keeps rho_s undiluted; 0: none), got {c.rho_s_replicate!r}")
-        if not isinstance(c.rho_s_footprint, (bool, np.bool_)):
-            raise AppFusionError(f"scan config: rho_s_footprint must be True or False, got {c.rho_s_footprint!r}")
-        if not isinstance(c.plane_snap, (bool, np.bool_)):
-            raise AppFusionError(f"scan config: plane_snap must be True or False, got {c.plane_snap!r}")
-        if not isinstance(c.rho_d_clip_correction, (bool, np.bool_)):
-            raise AppFusionError(f"scan config: rho_d_clip_correction must be True or False, got {c.rho_d_clip_correction!r}")
+        for name in ("rho_s_footprint", "plane_snap", "rho_d_clip_correction"):
+            if not isinstance(getattr(c, name), (bool, np.bool_)):
+                raise AppFusionError(f"scan config: {name} must be True or False, got {getattr(c, name)!r}")
         if not (isinstance(c.rho_d_pool_k, (int, np.integer)) and 0 <= int(c.rho_d_pool_k) <= 1024):
             raise AppFusionError("scan config: rho_d_pool_k must be an integer in [0, 1024] (neighbours a point's "
                                  f"rho_d is pooled with; 0 or 1: off), got {c.rho_d_pool_k!r}")
